@@ -1,0 +1,345 @@
+"""One robot's process: sensors in -> estimator -> decision layer -> policy -> driver out.
+
+The loop runs once per control period. In lock-step (a simulated fleet run as fast as it
+goes) a period is one world step: the agent waits for step k's odometry and scan and for
+the states that its neighbours sent in step k-1, then answers with its command for step
+k. In real time (a real robot, or ``stack-fleet run --realtime``) it ticks on its own
+monotonic clock and uses the newest sensor data.
+
+Every way out (SIGINT/SIGTERM, ``--steps``, an error) commands zero velocity first.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+import zenoh
+
+from ..comm import Keys, MessageError, RadioModel, decode, encode
+from ..comm.messages import Clock, Diag, Scan, State
+from ..comm.radio import config_from_scenario
+from ..drivers import Driver, DriverLimits, make_driver
+from ..estimation import OdometryIntegrator
+from ..policies import make_policy
+from ..policies.pid import PidGains, PidPolicy
+from ..scenario import Scenario
+from .decision import DecisionLayer, Neighbour, obstacle_distance
+from .timing import LatencyHistogram
+
+log = logging.getLogger("stack.agent")
+
+STALE_AFTER_S = 3.0  # a neighbour not heard for this long is left out of the formation logic
+
+
+@dataclass
+class AgentConfig:
+    """Everything one agent process needs; built by the CLI from flags and the scenario."""
+
+    robot_id: int
+    """This robot's id (``robots[].id`` in the scenario)."""
+    scenario: Scenario
+    """The validated scenario (already with the fleet's overrides applied)."""
+    connect: str = "tcp/127.0.0.1:7447"
+    """Zenoh endpoint of the router to join."""
+    fleet: str = "default"
+    """Fleet name: the key prefix ``stack/<fleet>/``."""
+    policy: str | None = None
+    """Override the robot's policy."""
+    driver: str | None = None
+    """Override the robot's driver."""
+    lockstep: bool = False
+    """Answer the world's steps instead of ticking on the wall clock (simulation only)."""
+    steps: int | None = None
+    """Stop after this many control steps (tests); None runs until a signal."""
+    seed: int | None = None
+    """Seed of every random source of this agent; defaults to the scenario's."""
+    sensor_timeout_s: float = 30.0
+    """Lock-step: give up (zero, exit) if the world sends nothing for this long."""
+    stop: threading.Event = field(default_factory=threading.Event)
+    """Set to end the loop (signal handlers set it)."""
+
+
+class Agent:
+    def __init__(self, cfg: AgentConfig, session: zenoh.Session):
+        self.cfg = cfg
+        sc = cfg.scenario
+        self.robot = sc.robot(cfg.robot_id)
+        self.id = cfg.robot_id
+        self.session = session
+        self.keys = Keys(cfg.fleet)
+        self.dt = sc.dt
+        seed = sc.seed if cfg.seed is None else cfg.seed
+        role = self.robot.role or "peer"
+        self.role = role
+
+        self.radio = RadioModel(config_from_scenario(sc.comm, self.robot.comm_range, seed), self.id)
+        self.malformed: dict[str, int] = {}
+        self.sent = 0
+        self.seq = 0
+        self.step = -1
+        self.sim_now = 0.0
+        self.hist = LatencyHistogram()
+        self.fault = ""
+        self._odo_step = -1
+
+        x, y, yaw = self.robot.pose
+        self.estimator = OdometryIntegrator(x, y, yaw)
+        policy_name = cfg.policy or self.robot.policy
+        self.policy = make_policy(policy_name, self.robot)
+        p = self.robot.pid
+        self.pid = PidPolicy(PidGains(k_v=p.k_v, k_w=p.k_w, k_i=p.k_i, k_d=p.k_d,
+                                      v_cap=self.robot.v_max * (p.v_cruise if role == "leader" else 1.0)))
+        self.decision = DecisionLayer(self.id, role, sc.formation, goal=self.robot.goal, radius=self.robot.radius,
+                                      comm_range=self.robot.comm_range, scan_range=self.robot.lidar.range, dt=self.dt)
+
+        # sensor and neighbour inboxes, filled by zenoh callbacks
+        self._cv = threading.Condition()
+        self._scan: Scan | None = None
+        self._scan_arrival = 0.0
+        self._odom_arrival = 0.0
+        self._clock: Clock | None = None
+        self._inbox: list[State] = []
+        self._states_seen: dict[int, int] = {}  # sender -> newest step seen on the wire
+        self._dead: set[int] = set()
+        self.neighbours: dict[int, Neighbour] = {}
+        self.scans: deque[np.ndarray] = deque(maxlen=3)
+
+        limits = DriverLimits(self.robot.v_max, self.robot.w_max, self.robot.cmd_timeout)
+        driver_name = cfg.driver or self.robot.driver
+        clock = (lambda: self.sim_now) if cfg.lockstep else time.monotonic
+        params = self.robot.driver_params.get(driver_name, {})
+        self.driver: Driver = make_driver(driver_name, self.id, limits, session=session, keys=self.keys,
+                                          stamp=self._stamp, on_malformed=self._count_malformed,
+                                          on_odom=self._on_odom, **params)
+        self.driver._clock = clock
+
+    # --- time ----------------------------------------------------------------------
+    def _stamp(self) -> float:
+        return self.sim_now if self.cfg.lockstep else time.time()
+
+    # --- callbacks (zenoh threads) -------------------------------------------------
+    def _count_malformed(self, key: str) -> None:
+        topic = key.rsplit("/", 1)[-1]
+        with self._cv:
+            self.malformed[topic] = self.malformed.get(topic, 0) + 1
+
+    def _on_odom(self, _odo) -> None:
+        with self._cv:
+            self._odom_arrival = time.perf_counter()
+            self._cv.notify_all()
+
+    def _on_scan(self, sample: zenoh.Sample) -> None:
+        try:
+            m = decode(sample.payload.to_bytes(), Scan)
+            if m.id != self.id:
+                raise MessageError("scan for another robot")
+        except MessageError:
+            self._count_malformed(str(sample.key_expr))
+            return
+        with self._cv:
+            self._scan = m
+            self._scan_arrival = time.perf_counter()
+            self._cv.notify_all()
+
+    def _on_clock(self, sample: zenoh.Sample) -> None:
+        try:
+            m = decode(sample.payload.to_bytes(), Clock)
+        except MessageError:
+            self._count_malformed(str(sample.key_expr))
+            return
+        with self._cv:
+            self._clock = m
+            if self.cfg.lockstep:
+                self.sim_now = max(self.sim_now, m.t)
+            self._cv.notify_all()
+
+    def _on_state(self, sample: zenoh.Sample) -> None:
+        sender = Keys.id_of(str(sample.key_expr))
+        if sender == self.id:
+            return
+        try:
+            m = decode(sample.payload.to_bytes(), State)
+            if sender is None or m.id != sender:
+                raise MessageError("state id does not match its key")
+        except MessageError:
+            self._count_malformed(str(sample.key_expr))
+            return
+        with self._cv:
+            self._inbox.append(m)
+            self._states_seen[m.id] = max(self._states_seen.get(m.id, -1), m.step)
+            self._cv.notify_all()
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        rid = Keys.id_of(str(sample.key_expr))
+        if rid is None or rid == self.id:
+            return
+        with self._cv:
+            if sample.kind == zenoh.SampleKind.DELETE:
+                self._dead.add(rid)
+                self.neighbours.pop(rid, None)
+                log.info("agent %d: robot %d left (liveliness lost)", self.id, rid)
+            else:
+                self._dead.discard(rid)
+
+    # --- main loop -------------------------------------------------------------------
+    def run(self) -> int:
+        k = self.keys
+        s = self.session
+        self._state_pub = s.declare_publisher(k.robot(self.id, "state"), congestion_control=zenoh.CongestionControl.BLOCK)
+        self._diag_pub = s.declare_publisher(k.robot(self.id, "diag"), congestion_control=zenoh.CongestionControl.BLOCK)
+        subs = [
+            s.declare_subscriber(k.robot(self.id, "scan"), self._on_scan),
+            s.declare_subscriber(k.all_robots("state"), self._on_state),
+            s.declare_subscriber(k.world("clock"), self._on_clock),
+            s.liveliness().declare_subscriber(k.all_alive, self._on_alive, history=True),
+        ]
+        # malformed traffic on our other inputs is counted too
+        subs += [s.declare_subscriber(k.robot(self.id, t), self._check_only) for t in ("diag",)]
+        token = None
+        try:
+            with self.driver:
+                token = s.liveliness().declare_token(k.alive(self.id))
+                log.info("agent %d (%s, policy %s, driver %s) up on %s", self.id, self.role, self.policy.name,
+                         self.driver.name, self.cfg.connect)
+                try:
+                    self._loop()
+                finally:
+                    self.driver.stop()  # zero velocity before anything else on the way out
+                    self._publish_diag("stopped")
+        finally:
+            if token is not None:
+                token.undeclare()
+            for sub in subs:
+                sub.undeclare()
+        return 0
+
+    def _check_only(self, sample: zenoh.Sample) -> None:
+        pass  # our own diag comes back to us; others' keys are not ours to judge
+
+    def _loop(self) -> None:
+        stop = self.cfg.stop
+        period = self.dt
+        next_tick = time.monotonic()
+        steps = 0
+        while not stop.is_set():
+            if self.cfg.lockstep:
+                got = self._wait_lockstep()
+                if got is None:
+                    continue
+            else:
+                next_tick += period
+                delay = next_tick - time.monotonic()
+                if delay > 0:
+                    if stop.wait(delay):
+                        break
+                else:
+                    next_tick = time.monotonic()  # overran: do not try to catch up
+                with self._cv:
+                    if self._scan is None or self.driver.read() is None:
+                        continue
+            self._control_step()
+            steps += 1
+            if self.cfg.steps is not None and steps >= self.cfg.steps:
+                break
+
+    def _wait_lockstep(self) -> int | None:
+        """Block until step k's odometry and scan are in, and the neighbours' step k-1 states."""
+        deadline = time.monotonic() + self.cfg.sensor_timeout_s
+        with self._cv:
+            while True:
+                if self.cfg.stop.is_set():
+                    return None
+                scan, odo = self._scan, self.driver.read()
+                if scan is not None and odo is not None and scan.step > self.step and odo.step == scan.step:
+                    break
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"agent {self.id}: no sensor data from the world for {self.cfg.sensor_timeout_s:.0f} s")
+                self._cv.wait(0.05)
+            k = scan.step
+            clock = self._clock
+            # the robots that commanded step k-1 had sent their state k-1 before: wait for it (bounded)
+            if clock is not None and clock.step == k:
+                want = [i for i in clock.answered if i != self.id and i not in self._dead]
+                t_end = time.monotonic() + 1.0
+                while any(self._states_seen.get(i, -1) < k - 1 for i in want) and time.monotonic() < t_end:
+                    if self.cfg.stop.is_set():
+                        return None
+                    self._cv.wait(0.02)
+            self.sim_now = max(self.sim_now, scan.stamp)
+            return k
+
+    def _control_step(self) -> None:
+        with self._cv:
+            scan = self._scan
+            odo = self.driver.read()
+            t_sensor = max(self._scan_arrival, self._odom_arrival)
+            k = scan.step
+            now = self.sim_now if self.cfg.lockstep else time.time()
+            # lock-step: only states sent before this step are offered, in a fixed order (determinism)
+            if self.cfg.lockstep:
+                take = sorted((m for m in self._inbox if m.step < k), key=lambda m: (m.step, m.id, m.seq))
+                self._inbox = [m for m in self._inbox if m.step >= k]
+            else:
+                take, self._inbox = self._inbox, []
+            dead = set(self._dead)
+        self.step = k
+
+        # estimator: dead reckoning on each new wheel odometry sample, eq. (1)
+        if odo.step > self._odo_step:
+            n = 1 if self._odo_step < 0 else min(odo.step - self._odo_step, 5)
+            self.estimator.update(odo.v, odo.w, n * self.dt)
+            self._odo_step = odo.step
+        pose = self.estimator.pose
+
+        # neighbours through the radio model: range from their reported position to our estimate
+        for m in take:
+            if m.id in dead:
+                continue
+            self.radio.offer(m.id, (m.x, m.y), (pose.x, pose.y), m.stamp, m)
+        for m in self.radio.ready(now):
+            if m.id in dead:
+                continue
+            old = self.neighbours.get(m.id)
+            if old is None or m.seq > old.seq:
+                self.neighbours[m.id] = Neighbour(m.id, m.role, m.x, m.y, m.yaw, m.v, m.w, m.stamp, m.seq)
+        for nid in [i for i, n in self.neighbours.items() if now - n.stamp > STALE_AFTER_S]:
+            del self.neighbours[nid]
+
+        ranges = np.asarray(scan.ranges, dtype=float)
+        self.scans.append(ranges)
+        scans = np.stack(self.scans)
+        d_omin = obstacle_distance((pose.x, pose.y), pose.yaw, ranges, scan.angle_min, scan.angle_increment,
+                                   scan.range_max, [n.predicted(now) for n in self.neighbours.values()],
+                                   self.robot.radius)
+        dec = self.decision.decide(pose, now, self.neighbours, scans, (scan.angle_min, scan.angle_increment, scan.range_max), d_omin)
+        if dec.obs is None:
+            v, w = 0.0, 0.0
+        else:
+            v, w = (self.policy if dec.use_network else self.pid).act(dec.obs)
+            if self.role == "leader":
+                v = DecisionLayer.leader_speed(v, dec.d_rmax, self.cfg.scenario.formation.d_leader_slow)  # eq. (20)
+
+        self.seq += 1
+        st = State(id=self.id, role=self.role, seq=self.seq, stamp=self._stamp(), x=pose.x, y=pose.y, yaw=pose.yaw,
+                   v=pose.v, w=pose.w, step=k, situation=dec.situation)
+        self._state_pub.put(encode(st))
+        self.sent += 1
+        self.driver.command(v, w, step=k)
+        self.hist.add((time.perf_counter() - t_sensor) * 1000.0)
+        if k % 10 == 0:
+            self._publish_diag("running")
+
+    def _publish_diag(self, state: str) -> None:
+        c = self.radio.counters
+        with self._cv:
+            malformed = dict(self.malformed)
+        d = Diag(id=self.id, stamp=self._stamp(), step=self.step, state=state, sent=self.sent, received=c.received,
+                 delivered=c.delivered, dropped_loss=c.dropped_loss, dropped_range=c.dropped_range,
+                 malformed=sum(malformed.values()), malformed_by_key=malformed, loop_hist=self.hist.as_dict(),
+                 situations={k: v for k, v in self.decision.counts.items() if v}, fault=self.fault)
+        self._diag_pub.put(encode(d))

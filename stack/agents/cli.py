@@ -1,0 +1,92 @@
+"""``stack-agent``: one robot's process. Argument parsing here; the work is in :func:`main`."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+
+from ..comm.session import EndpointError, SessionConfig, check_endpoint, open_session
+from ..drivers import UnknownDriver
+from ..policies import PolicyUnavailable
+from ..scenario import DRIVERS, POLICIES, ScenarioError, load_scenario, with_overrides
+from .agent import Agent, AgentConfig
+
+log = logging.getLogger("stack.agent")
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit 2
+        print(f"{self.prog}: {message}", file=sys.stderr)
+        sys.exit(2)
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = _Parser(prog="stack-agent", description="One robot of a formation: sensors, estimator, decision layer, policy, driver.")
+    ap.add_argument("--id", type=int, required=True, help="robot id in the scenario")
+    ap.add_argument("--role", choices=("leader", "follower", "peer"), help="must match the scenario (checked)")
+    ap.add_argument("--scenario", required=True, help="scenario YAML")
+    ap.add_argument("--policy", choices=POLICIES, help="override the robot's policy")
+    ap.add_argument("--driver", choices=DRIVERS, help="override the robot's driver")
+    ap.add_argument("--connect", default="tcp/127.0.0.1:7447", help="Zenoh router endpoint (default %(default)s)")
+    ap.add_argument("--fleet", default="default", help="fleet name, the key prefix stack/<fleet>/ (default %(default)s)")
+    ap.add_argument("--lockstep", action="store_true", help="answer the simulated world's steps (set by stack-fleet)")
+    ap.add_argument("--steps", type=int, help="stop after this many control steps")
+    ap.add_argument("--seed", type=int, help="seed of every random source (default: the scenario's)")
+    ap.add_argument("--allow-remote", action="store_true", help="allow a router endpoint off loopback")
+    ap.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    return ap
+
+
+def config_from_args(a: argparse.Namespace) -> AgentConfig:
+    sc = load_scenario(a.scenario)
+    robot = sc.robot(a.id)
+    role = robot.role or "peer"
+    if a.role is not None and a.role != role:
+        raise ScenarioError(f"--role: robot {a.id} is {role} in {a.scenario}, not {a.role}")
+    if a.steps is not None and a.steps < 1:
+        raise ScenarioError(f"--steps: must be >= 1, got {a.steps}")
+    check_endpoint(a.connect, a.allow_remote)
+    if a.policy or a.driver:
+        sc = with_overrides(sc, policy=a.policy, driver=a.driver)
+    return AgentConfig(robot_id=a.id, scenario=sc, connect=a.connect, fleet=a.fleet, lockstep=a.lockstep,
+                       steps=a.steps, seed=a.seed)
+
+
+def main(cfg: AgentConfig, allow_remote: bool = False) -> int:
+    """Run one agent until its stop event, ``steps``, or a signal; zero velocity on every way out."""
+    def on_signal(signum, _frame):
+        log.info("agent %d: %s: stopping", cfg.robot_id, signal.Signals(signum).name)
+        cfg.stop.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
+    log.info("agent %d config: %s", cfg.robot_id, {k: v for k, v in vars(cfg).items() if k not in ("scenario", "stop")})
+    with open_session(SessionConfig(mode="client", connect=[cfg.connect], allow_remote=allow_remote)) as session:
+        agent = Agent(cfg, session)
+        return agent.run()
+
+
+def cli(argv: list[str] | None = None) -> int:
+    a = parser().parse_args(argv)
+    logging.basicConfig(level=a.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    try:
+        cfg = config_from_args(a)
+    except (ScenarioError, EndpointError) as e:
+        print(f"stack-agent: {e}", file=sys.stderr)
+        return 2
+    try:
+        return main(cfg, a.allow_remote)
+    except (PolicyUnavailable, UnknownDriver) as e:
+        print(f"stack-agent: {e}", file=sys.stderr)
+        return 2
+    except TimeoutError as e:
+        print(f"stack-agent: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

@@ -1,0 +1,148 @@
+"""The decision layer of Bai 2022 section IV (Algorithm 2): which target, which controller.
+
+Leader (section IV-A):
+  situation 1: min(d_rmin, d_omin) > d_safe  or  d_g < min(d_rmin, d_omin)  -> PID to the goal
+  situation 2: otherwise                                                   -> the network to the goal
+  eq. (20):    v_L <- v_L * 5 / d_rmax  when d_rmax > 5 m
+Follower (section IV-B), target from eq. (3):
+  situation 1: min(d_rmin, d_omin) > d_safe                 -> PID to the slot
+  situation 2: d_rmin < d_safe and d_omin > d_safe          -> the network to the slot
+  situation 3: otherwise (an obstacle within d_safe)        -> the network, d_g to the slot but
+               alpha_g toward the centre (eq. 22) of the robots selected by eq. (21)
+
+d_rmin/d_rmax come from the neighbours' reported states (as delivered by the radio
+model); d_omin from the lidar, leaving out beams that end on a known neighbour.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..estimation.odometry import wrap
+from ..policies.base import Observation
+
+SITUATIONS = ("leader-1", "leader-2", "follower-1", "follower-2", "follower-3", "peer", "waiting")
+
+
+@dataclass
+class Neighbour:
+    id: int
+    role: str
+    x: float
+    y: float
+    yaw: float
+    v: float
+    w: float
+    stamp: float  # sender's stamp
+    seq: int
+
+    def predicted(self, now: float, horizon: float = 1.0) -> tuple[float, float]:
+        """Position extrapolated along the reported velocity, at most ``horizon`` seconds."""
+        age = max(0.0, min(horizon, now - self.stamp))
+        return self.x + self.v * math.cos(self.yaw) * age, self.y + self.v * math.sin(self.yaw) * age
+
+
+@dataclass
+class Decision:
+    situation: str
+    use_network: bool
+    obs: Observation | None  # None: hold still (e.g. a follower that has not heard its leader yet)
+    target: tuple[float, float] | None
+    d_rmin: float
+    d_rmax: float
+    d_omin: float
+
+
+def obstacle_distance(pose_xy: tuple[float, float], yaw: float, scan: np.ndarray, angle_min: float, angle_inc: float,
+                      range_max: float, neighbours: list[tuple[float, float]], robot_radius: float) -> float:
+    """Smallest lidar range whose end point is not on a known neighbour (within its radius + 0.3 m)."""
+    if scan.size == 0:
+        return math.inf
+    hits = scan < range_max - 1e-6
+    if not hits.any():
+        return math.inf
+    r = scan[hits]
+    ang = yaw + angle_min + angle_inc * np.nonzero(hits)[0]
+    ex, ey = pose_xy[0] + r * np.cos(ang), pose_xy[1] + r * np.sin(ang)
+    keep = np.ones(r.shape, bool)
+    for nx, ny in neighbours:
+        keep &= np.hypot(ex - nx, ey - ny) > robot_radius + 0.3
+    return float(r[keep].min()) if keep.any() else math.inf
+
+
+def _polar(frm: tuple[float, float], yaw: float, to: tuple[float, float]) -> tuple[float, float]:
+    dx, dy = to[0] - frm[0], to[1] - frm[1]
+    return math.hypot(dx, dy), wrap(math.atan2(dy, dx) - yaw)
+
+
+class DecisionLayer:
+    def __init__(self, robot_id: int, role: str, formation, *, goal: tuple[float, float] | None, radius: float,
+                 comm_range: float, scan_range: float, dt: float):
+        self.id = robot_id
+        self.role = role
+        self.formation = formation
+        self.goal = goal
+        self.radius = radius
+        self.comm_range = comm_range
+        self.scan_range = scan_range
+        self.dt = dt
+        self.counts: dict[str, int] = {s: 0 for s in SITUATIONS}
+
+    def decide(self, pose, now: float, neighbours: dict[int, Neighbour], scans: np.ndarray,
+               scan_geom: tuple[float, float, float], d_omin: float) -> Decision:
+        me = (pose.x, pose.y)
+        others = [n.predicted(now) for n in neighbours.values()]
+        dists = [math.hypot(o[0] - me[0], o[1] - me[1]) for o in others]
+        d_rmin = min(dists, default=math.inf)
+        d_rmax = max(dists, default=0.0)
+        rel = sorted(((d, _polar(me, pose.yaw, o)[1]) for d, o in zip(dists, others) if d <= self.comm_range), reverse=True)
+        nb = np.array(rel, dtype=float).reshape(-1, 2)
+
+        def obs(target, alpha=None, gvel=(0.0, 0.0)) -> Observation:
+            d_g, a_g = _polar(me, pose.yaw, target)
+            return Observation(d_g=d_g, alpha_g=a_g if alpha is None else alpha, v=pose.v, w=pose.w, neighbours=nb,
+                               scans=scans, goal_velocity=gvel, yaw=pose.yaw, scan_range=self.scan_range, dt=self.dt)
+
+        f = self.formation
+        if f is None:  # arrival-time peer: straight to its own goal
+            return self._count(Decision("peer", False, obs(self.goal), self.goal, d_rmin, d_rmax, d_omin))
+        d_safe = f.d_safe
+        if self.role == "leader":
+            d_g = math.hypot(f.goal[0] - me[0], f.goal[1] - me[1])
+            m = min(d_rmin, d_omin)
+            if m > d_safe or d_g < m:
+                return self._count(Decision("leader-1", False, obs(f.goal), f.goal, d_rmin, d_rmax, d_omin))
+            return self._count(Decision("leader-2", True, obs(f.goal), f.goal, d_rmin, d_rmax, d_omin))
+
+        leader = neighbours.get(f.leader)
+        if leader is None:
+            return self._count(Decision("waiting", False, None, None, d_rmin, d_rmax, d_omin))
+        lx, ly = leader.predicted(now)
+        slot = f.slots[self.id]
+        target = (lx + slot.L * math.cos(slot.psi), ly + slot.L * math.sin(slot.psi))  # eq. (3)
+        gvel = (leader.v * math.cos(leader.yaw), leader.v * math.sin(leader.yaw))
+        if min(d_rmin, d_omin) > d_safe:
+            return self._count(Decision("follower-1", False, obs(target, gvel=gvel), target, d_rmin, d_rmax, d_omin))
+        if d_rmin < d_safe and d_omin > d_safe:
+            return self._count(Decision("follower-2", True, obs(target, gvel=gvel), target, d_rmin, d_rmax, d_omin))
+        # situation 3: eq. (21) selects robots i with cos<p_L - p_F, p_i - p_F> > 0, eq. (22) their centre
+        lv = (lx - me[0], ly - me[1])
+        sel = [o for o in others if lv[0] * (o[0] - me[0]) + lv[1] * (o[1] - me[1]) > 0]
+        if sel:
+            xc, yc = sum(o[0] for o in sel) / len(sel), sum(o[1] for o in sel) / len(sel)
+            alpha = _polar(me, pose.yaw, (xc, yc))[1]
+        else:
+            alpha = None
+        return self._count(Decision("follower-3", True, obs(target, alpha=alpha, gvel=gvel), target, d_rmin, d_rmax, d_omin))
+
+    def _count(self, d: Decision) -> Decision:
+        self.counts[d.situation] += 1
+        return d
+
+    @staticmethod
+    def leader_speed(v: float, d_rmax: float, d_slow: float = 5.0) -> float:
+        """Eq. (20): v_L^c (5 / d_L^rmax) if d_L^rmax > 5 m."""
+        return v * (d_slow / d_rmax) if d_rmax > d_slow else v

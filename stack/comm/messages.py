@@ -1,0 +1,163 @@
+"""MessagePack message types of the wire format.
+
+Every payload is a MessagePack map with named fields, readable by any MessagePack decoder
+in any language. Decoding validates types and finiteness; unknown extra fields are
+ignored (the contract lets senders add fields), missing required ones are errors.
+"""
+
+from __future__ import annotations
+
+import math
+
+import msgspec
+
+
+class MessageError(ValueError):
+    """A payload that does not decode or validate: to be dropped and counted, never raised to a loop."""
+
+
+def _finite(obj: msgspec.Struct) -> None:
+    for name in obj.__struct_fields__:
+        v = getattr(obj, name)
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ValueError(f"{name} is not finite")
+
+
+class _Msg(msgspec.Struct, kw_only=True):
+    def __post_init__(self) -> None:
+        _finite(self)
+
+
+class State(_Msg):
+    """``stack/<fleet>/<id>/state``: an agent's own estimate, sent once per control step."""
+
+    id: int
+    role: str
+    seq: int
+    stamp: float  # sim time in lock-step, wall clock (UNIX s) in real time
+    x: float
+    y: float
+    yaw: float
+    v: float
+    w: float
+    step: int = -1
+    cov_trace: float | None = None
+    situation: str | None = None
+
+
+class CmdVel(_Msg):
+    """``.../cmd_vel``: body-frame command to a simulated or bridged base. step -1: outside the step loop (a stop)."""
+
+    id: int
+    step: int
+    stamp: float
+    v: float
+    w: float
+
+
+class Odom(_Msg):
+    """``.../odom``: wheel odometry, body-frame speeds measured by the encoders."""
+
+    id: int
+    step: int
+    stamp: float
+    v: float
+    w: float
+
+
+class Imu(_Msg):
+    """``.../imu``: gyro yaw rate."""
+
+    id: int
+    step: int
+    stamp: float
+    wz: float
+
+
+class Scan(_Msg):
+    """``.../scan``: 2D lidar, ``ranges[i]`` at angle_min + i * angle_increment (robot frame), metres."""
+
+    id: int
+    step: int
+    stamp: float
+    angle_min: float
+    angle_increment: float
+    range_max: float
+    ranges: list[float]
+
+    def __post_init__(self) -> None:
+        _finite(self)
+        if not self.ranges or len(self.ranges) > 100_000:
+            raise ValueError("ranges length out of bounds")
+        for r in self.ranges:
+            if not (0.0 <= r <= self.range_max):
+                raise ValueError("range outside [0, range_max]")
+
+
+class Clock(_Msg):
+    """``stack/<fleet>/world/clock``: the world's step k and sim time; ``answered`` is who commanded step k-1."""
+
+    step: int
+    t: float
+    dt: float
+    answered: list[int] = []
+    lockstep: bool = True
+
+
+class Truth(_Msg):
+    """``stack/<fleet>/world/truth``: ground truth, for the orchestrator and tools only, never agents."""
+
+    step: int
+    t: float
+    ids: list[int]
+    x: list[float]
+    y: list[float]
+    yaw: list[float]
+
+
+class WorldStatus(_Msg):
+    """``stack/<fleet>/world/status``: ready, running, done (with why)."""
+
+    state: str
+    t: float = 0.0
+    why: str = ""
+
+
+class Diag(_Msg):
+    """``.../diag``: an agent's counters, loop timing histogram and situation counts."""
+
+    id: int
+    stamp: float
+    step: int
+    state: str  # running | stopped | fault
+    sent: int = 0
+    received: int = 0
+    delivered: int = 0
+    dropped_loss: int = 0
+    dropped_range: int = 0
+    malformed: int = 0
+    malformed_by_key: dict[str, int] = {}
+    loop_hist: dict[int, int] = {}
+    situations: dict[str, int] = {}
+    fault: str = ""
+
+
+_ENCODER = msgspec.msgpack.Encoder()
+_DECODERS: dict[type, msgspec.msgpack.Decoder] = {}
+
+
+def encode(msg: msgspec.Struct) -> bytes:
+    return _ENCODER.encode(msg)
+
+
+def decode(payload: bytes, kind: type[msgspec.Struct]):
+    """Decode and validate; raise :class:`MessageError` with a short reason."""
+    dec = _DECODERS.get(kind)
+    if dec is None:
+        dec = _DECODERS[kind] = msgspec.msgpack.Decoder(kind)
+    try:
+        return dec.decode(payload)
+    except (msgspec.DecodeError, msgspec.ValidationError) as e:
+        raise MessageError(f"{kind.__name__}: {e}") from None
+    except (ValueError, TypeError, OverflowError, RecursionError) as e:  # defensive: any decoder fault is a drop
+        raise MessageError(f"{kind.__name__}: {e}") from None

@@ -1,0 +1,97 @@
+"""Zenoh sessions with the project's network rule built in.
+
+Every session opened through here has multicast scouting off and explicit endpoints;
+the defaults are loopback only. Layered like zenoh-python's examples: a base config
+(mode, endpoints) plus ``overrides`` of json5 key paths (e.g. from ``deploy/`` files)::
+
+    with open_session(SessionConfig(connect=["tcp/127.0.0.1:7447"])) as session:
+        ...
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import socket
+from dataclasses import dataclass, field
+
+import zenoh
+
+log = logging.getLogger(__name__)
+
+LOOPBACK = "127.0.0.1"
+
+
+class EndpointError(ValueError):
+    """An endpoint string that zenoh would not accept, or one off loopback without opt-in."""
+
+
+@dataclass
+class SessionConfig:
+    """One Zenoh session.
+
+    mode: ``client`` (agents, world, tools: through a router) or ``router`` (the fleet's own).
+    connect: endpoints to reach, e.g. ``tcp/127.0.0.1:7447``.
+    listen: endpoints to accept on (routers).
+    config_file: a zenoh json5 file (e.g. from ``deploy/``) loaded first; our settings layer on top.
+    overrides: further ``key/path -> json5 value`` insertions, applied last.
+    allow_remote: endpoints off loopback are refused unless this is set (multi-host fleets).
+    """
+
+    mode: str = "client"
+    connect: list[str] = field(default_factory=list)
+    listen: list[str] = field(default_factory=list)
+    config_file: str | None = None
+    overrides: dict[str, str] = field(default_factory=dict)
+    allow_remote: bool = False
+
+
+def check_endpoint(endpoint: str, allow_remote: bool = False) -> str:
+    """Validate ``proto/host:port``; loopback hosts only unless ``allow_remote``."""
+    try:
+        proto, rest = endpoint.split("/", 1)
+        host, port_s = rest.rsplit(":", 1)
+        port = int(port_s.split("#")[0])
+    except ValueError:
+        raise EndpointError(f"endpoint {endpoint!r}: expected PROTO/HOST:PORT, e.g. tcp/127.0.0.1:7447") from None
+    if proto not in ("tcp", "udp", "tls", "quic", "ws"):
+        raise EndpointError(f"endpoint {endpoint!r}: unknown protocol {proto!r}")
+    if not 0 < port < 65536:
+        raise EndpointError(f"endpoint {endpoint!r}: port {port} out of range")
+    h = host.strip("[]")
+    if not allow_remote and not (h == "localhost" or h.startswith("127.") or h == "::1"):
+        raise EndpointError(f"endpoint {endpoint!r}: not a loopback address (multi-host fleets use deploy/ configs)")
+    return endpoint
+
+
+def zenoh_config(cfg: SessionConfig) -> zenoh.Config:
+    conf = zenoh.Config.from_file(cfg.config_file) if cfg.config_file else zenoh.Config()
+    for ep in cfg.connect + cfg.listen:
+        check_endpoint(ep, cfg.allow_remote)
+    conf.insert_json5("mode", json.dumps(cfg.mode))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    if cfg.mode != "router":
+        conf.insert_json5("scouting/gossip/enabled", "false")
+    conf.insert_json5("connect/endpoints", json.dumps(cfg.connect))
+    conf.insert_json5("listen/endpoints", json.dumps(cfg.listen))
+    for key, value in cfg.overrides.items():
+        conf.insert_json5(key, value)
+    if "multicast/enabled" in str(cfg.overrides) and "true" in str(cfg.overrides):
+        log.warning("zenoh: multicast scouting switched on by an override")
+    return conf
+
+
+def open_session(cfg: SessionConfig) -> zenoh.Session:
+    """Open a session (a context manager: ``with open_session(cfg) as s``)."""
+    return zenoh.open(zenoh_config(cfg))
+
+
+def client(endpoint: str, **kw) -> SessionConfig:
+    return SessionConfig(mode="client", connect=[endpoint], **kw)
+
+
+def free_tcp_endpoint(host: str = LOOPBACK) -> str:
+    """A free loopback TCP port, as a zenoh endpoint."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return f"tcp/{host}:{s.getsockname()[1]}"

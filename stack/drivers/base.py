@@ -1,0 +1,173 @@
+"""The driver interface: ``open / command(v, w) / read / close``.
+
+Like python-can's ``BusABC``: the public methods keep the rules (clamping to the robot's
+limits, eq. (2) of Bai 2022; the command watchdog; zero velocity before closing) and a
+backend implements only the underscored hooks::
+
+    class MyDriver(Driver):
+        def _open(self): ...
+        def _send(self, v, w): ...      # put one (already clamped) command on the wire
+        def _read(self): ...            # newest Odometry or None
+        def _close(self): ...
+
+A driver is a context manager; leaving the block commands zero and closes.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+log = logging.getLogger(__name__)
+
+
+class DriverError(RuntimeError):
+    """A driver that cannot open, or a device fault (the agent stops the robot and reports it)."""
+
+
+@dataclass(frozen=True)
+class Odometry:
+    """Wheel odometry as the driver measured it: body-frame speeds, their time and step."""
+
+    v: float
+    w: float
+    stamp: float
+    step: int = -1
+    wz_imu: float | None = None  # gyro yaw rate, where the base has one
+
+
+@dataclass(frozen=True)
+class DriverLimits:
+    v_max: float
+    w_max: float
+    cmd_timeout: float = 0.5  # [s] a command older than this is replaced by zero
+
+
+class Driver(ABC):
+    """Base of every driver. Subclasses never clamp, never time out, never forget the final zero."""
+
+    name = "base"
+
+    def __init__(self, robot_id: int, limits: DriverLimits, clock=time.monotonic):
+        self.robot_id = robot_id
+        self.limits = limits
+        self._clock = clock
+        self._lock = threading.RLock()
+        self._last_cmd_time: float | None = None
+        self._last_sent: tuple[float, float] = (0.0, 0.0)
+        self._is_open = False
+        self._watchdog: threading.Thread | None = None
+        self._stop = threading.Event()
+        self.watchdog_trips = 0
+        self.fault: str | None = None
+
+    # --- lifecycle -------------------------------------------------------------------
+    def open(self) -> "Driver":
+        with self._lock:
+            if self._is_open:
+                return self
+            self._open()
+            self._is_open = True
+            self._stop.clear()
+            self._last_cmd_time = None
+            self._watchdog = threading.Thread(target=self._watch, name=f"{self.name}-watchdog-{self.robot_id}", daemon=True)
+            self._watchdog.start()
+        return self
+
+    def close(self) -> None:
+        """Zero velocity first, then release the device. Safe to call twice."""
+        with self._lock:
+            if not self._is_open:
+                return
+            try:
+                self._send(0.0, 0.0)
+                self._last_sent = (0.0, 0.0)
+            except Exception as e:  # the device may be gone; closing must still finish
+                log.warning("%s driver %s: zero command on close failed: %s", self.name, self.robot_id, e)
+            self._stop.set()
+            self._is_open = False
+            try:
+                self._close()
+            finally:
+                if self._watchdog is not None and self._watchdog is not threading.current_thread():
+                    self._watchdog.join(timeout=1.0)
+
+    def __enter__(self) -> "Driver":
+        return self.open()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # --- commands --------------------------------------------------------------------
+    def clamp(self, v: float, w: float) -> tuple[float, float]:
+        """Bai 2022 eq. (2): |v| <= v_max, |w| <= w_max; NaN/inf become zero."""
+        if not (math.isfinite(v) and math.isfinite(w)):
+            return 0.0, 0.0
+        lim = self.limits
+        return max(-lim.v_max, min(lim.v_max, v)), max(-lim.w_max, min(lim.w_max, w))
+
+    def command(self, v: float, w: float, step: int = -1) -> tuple[float, float]:
+        """Send one velocity command (clamped); returns what was sent. A faulted driver sends zero."""
+        if not self._is_open:
+            raise DriverError(f"{self.name} driver {self.robot_id}: command on a closed driver")
+        v, w = self.clamp(float(v), float(w))
+        if self.fault is not None:
+            v, w = 0.0, 0.0
+        with self._lock:
+            self._send_step(v, w, step)
+            self._last_sent = (v, w)
+            self._last_cmd_time = self._clock()
+        return v, w
+
+    def stop(self) -> None:
+        """Zero velocity now (the agent's safe stop)."""
+        if self._is_open:
+            with self._lock:
+                self._send(0.0, 0.0)
+                self._last_sent = (0.0, 0.0)
+
+    def read(self) -> Odometry | None:
+        """The newest odometry, or None before the first sample."""
+        return self._read()
+
+    @property
+    def last_sent(self) -> tuple[float, float]:
+        return self._last_sent
+
+    # --- watchdog --------------------------------------------------------------------
+    def _watch(self) -> None:
+        period = min(0.05, self.limits.cmd_timeout / 4)
+        while not self._stop.wait(period):
+            with self._lock:
+                t = self._last_cmd_time
+                if t is None or self._last_sent == (0.0, 0.0):
+                    continue
+                if self._clock() - t > self.limits.cmd_timeout:
+                    log.warning("%s driver %s: no command for %.2f s: zero velocity", self.name, self.robot_id, self.limits.cmd_timeout)
+                    self.watchdog_trips += 1
+                    try:
+                        self._send(0.0, 0.0)
+                    except Exception as e:
+                        log.error("%s driver %s: watchdog zero failed: %s", self.name, self.robot_id, e)
+                    self._last_sent = (0.0, 0.0)
+
+    # --- backend hooks ---------------------------------------------------------------
+    @abstractmethod
+    def _open(self) -> None: ...
+
+    @abstractmethod
+    def _send(self, v: float, w: float) -> None: ...
+
+    def _send_step(self, v: float, w: float, step: int) -> None:
+        """Send a command belonging to control step ``step`` (lock-step worlds care; devices do not)."""
+        self._send(v, w)
+
+    @abstractmethod
+    def _read(self) -> Odometry | None: ...
+
+    @abstractmethod
+    def _close(self) -> None: ...

@@ -1,0 +1,86 @@
+"""``sim``: the simulated differential drive, over Zenoh.
+
+Publishes ``stack/<fleet>/<id>/cmd_vel`` and reads ``.../odom`` and ``.../imu`` from the
+world (``stack.sim_bridge``), which turns the commands into wheel speeds of a
+differential-drive body with acceleration limits.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Callable
+
+import zenoh
+
+from ..comm import Keys, MessageError, decode, encode
+from ..comm.messages import CmdVel, Imu, Odom
+from .base import Driver, DriverLimits, Odometry
+
+
+class SimDriver(Driver):
+    name = "sim"
+
+    def __init__(self, robot_id: int, limits: DriverLimits, *, session: zenoh.Session, keys: Keys,
+                 stamp: Callable[[], float] = time.time, on_malformed: Callable[[str], None] | None = None,
+                 on_odom: Callable[[Odometry], None] | None = None, **params):
+        super().__init__(robot_id, limits)
+        if params:
+            raise ValueError(f"sim driver: unknown settings {', '.join(sorted(params))}")
+        self._session = session
+        self._keys = keys
+        self._stamp = stamp
+        self._on_malformed = on_malformed or (lambda key: None)
+        self._on_odom = on_odom
+        self._latest: Odometry | None = None
+        self._wz: tuple[int, float] | None = None
+        self._data_lock = threading.Lock()
+        self._pub = None
+        self._subs: list = []
+
+    def _open(self) -> None:
+        self._pub = self._session.declare_publisher(self._keys.robot(self.robot_id, "cmd_vel"),
+                                                    congestion_control=zenoh.CongestionControl.BLOCK)
+        self._subs = [
+            self._session.declare_subscriber(self._keys.robot(self.robot_id, "imu"), self._imu_cb),
+            self._session.declare_subscriber(self._keys.robot(self.robot_id, "odom"), self._odom_cb),
+        ]
+
+    def _imu_cb(self, sample: zenoh.Sample) -> None:
+        try:
+            m = decode(sample.payload.to_bytes(), Imu)
+        except MessageError:
+            self._on_malformed(str(sample.key_expr))
+            return
+        with self._data_lock:
+            self._wz = (m.step, m.wz)
+
+    def _odom_cb(self, sample: zenoh.Sample) -> None:
+        try:
+            m = decode(sample.payload.to_bytes(), Odom)
+        except MessageError:
+            self._on_malformed(str(sample.key_expr))
+            return
+        with self._data_lock:
+            wz = self._wz[1] if self._wz is not None and self._wz[0] == m.step else None
+            odo = self._latest = Odometry(v=m.v, w=m.w, stamp=m.stamp, step=m.step, wz_imu=wz)
+        if self._on_odom is not None:
+            self._on_odom(odo)
+
+    def _send(self, v: float, w: float) -> None:
+        self._send_step(v, w, -1)
+
+    def _send_step(self, v: float, w: float, step: int) -> None:
+        self._pub.put(encode(CmdVel(id=self.robot_id, step=step, stamp=self._stamp(), v=v, w=w)))
+
+    def _read(self) -> Odometry | None:
+        with self._data_lock:
+            return self._latest
+
+    def _close(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+        self._subs = []
+        if self._pub is not None:
+            self._pub.undeclare()
+            self._pub = None

@@ -1,0 +1,144 @@
+"""``stack-fleet run|bench``: argument parsing only; the work is in :mod:`.orchestrator` and :mod:`.bench`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import re
+import sys
+from pathlib import Path
+
+from ..comm.session import EndpointError, check_endpoint
+from ..policies import available as available_policies
+from ..scenario import DRIVERS, POLICIES, ScenarioError, load_scenario, with_overrides
+from .orchestrator import EXIT_BAD_INPUT, FleetConfig, run_fleet
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit 2
+        print(f"{self.prog}: {message}", file=sys.stderr)
+        sys.exit(EXIT_BAD_INPUT)
+
+
+def _kill(text: str) -> tuple[int, float]:
+    m = re.fullmatch(r"(\d+)@(\d+(?:\.\d*)?)", text.strip())
+    if not m:
+        raise argparse.ArgumentTypeError(f"expected ID@SECONDS, e.g. 2@30, got {text!r}")
+    return int(m.group(1)), float(m.group(2))
+
+
+def _prob(text: str) -> float:
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a probability in [0, 1], got {text!r}") from None
+    if not 0.0 <= x <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a probability in [0, 1], got {text!r}")
+    return x
+
+
+def _nonneg(text: str) -> float:
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
+    if not x >= 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return x
+
+
+def _positive(text: str) -> float:
+    x = _nonneg(text)
+    if x == 0:
+        raise argparse.ArgumentTypeError("expected a number > 0, got 0")
+    return x
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = _Parser(prog="stack-fleet", description="Run and benchmark simulated formations.")
+    sub = ap.add_subparsers(dest="cmd", required=True, parser_class=_Parser)
+    r = sub.add_parser("run", help="run one scenario: router, world, one agent per robot; writes report.json and plots")
+    r.add_argument("scenario", help="scenario YAML")
+    r.add_argument("--out", type=Path, help="output folder (default runs/<scenario>)")
+    r.add_argument("--policy", choices=POLICIES, help="override every robot's policy")
+    r.add_argument("--driver", choices=DRIVERS, help="override every robot's driver")
+    r.add_argument("--loss", type=_prob, help="override comm.loss")
+    r.add_argument("--latency-ms", type=_nonneg, help="override comm.latency_ms")
+    r.add_argument("--seed", type=int, help="override the seed of every random source")
+    r.add_argument("--duration", type=_positive, help="override the duration [s]")
+    r.add_argument("--realtime", action="store_true", help="run on the wall clock (default: lock-step, as fast as agents answer)")
+    r.add_argument("--gui", action="store_true", help="pybullet GUI")
+    r.add_argument("--listen", help="router endpoint, e.g. tcp/127.0.0.1:7447 (default: a free loopback port)")
+    r.add_argument("--kill", type=_kill, action="append", default=[], metavar="ID@T", help="SIGKILL robot ID's agent at sim time T")
+    r.add_argument("--no-progress", action="store_true", help="no live progress line")
+    r.add_argument("--no-plots", action="store_true", help="skip trajectories.png and distances.png")
+    r.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    b = sub.add_parser("bench", help="every scenario x every fitting policy; one table (markdown + JSON)")
+    b.add_argument("--out", type=Path, default=Path("runs/bench"))
+    b.add_argument("--scenarios", type=Path, default=Path("scenarios"), help="folder of scenario files")
+    b.add_argument("--seed", type=int, help="override every scenario's seed")
+    return ap
+
+
+def run_config(a: argparse.Namespace) -> FleetConfig:
+    sc = load_scenario(a.scenario)
+    sc = with_overrides(sc, policy=a.policy, driver=a.driver, loss=a.loss, latency_ms=a.latency_ms, seed=a.seed,
+                        duration=a.duration)
+    missing = sorted({r.policy for r in sc.robots} - set(available_policies()))
+    if missing:
+        raise ScenarioError(f"{a.scenario}: policy {', '.join(missing)} is not implemented yet (available: {', '.join(available_policies())})")
+    drivers = sorted({r.driver for r in sc.robots} - {"sim"})
+    if drivers:
+        raise ScenarioError(f"{a.scenario}: driver {', '.join(drivers)} is not implemented yet (available: sim)")
+    ids = set(sc.ids)
+    for rid, t in a.kill:
+        if rid not in ids:
+            raise ScenarioError(f"--kill {rid}@{t:g}: no robot with id {rid} in {a.scenario}")
+    if a.listen:
+        check_endpoint(a.listen)
+    out = a.out or Path("runs") / sc.name
+    return FleetConfig(scenario=sc, out=out, realtime=a.realtime, gui=a.gui, listen=a.listen, kills=a.kill,
+                       progress=not a.no_progress, plots=not a.no_plots)
+
+
+def cli(argv: list[str] | None = None) -> int:
+    a = parser().parse_args(argv)
+    if a.cmd == "bench":
+        from .bench import main as bench_main
+
+        return bench_main(a.scenarios, a.out, seed=a.seed)
+    logging.basicConfig(level=a.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    try:
+        cfg = run_config(a)
+    except (ScenarioError, EndpointError) as e:
+        print(f"stack-fleet: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    try:
+        code, report = run_fleet(cfg)
+    except KeyboardInterrupt:
+        print("stack-fleet: interrupted; every process was stopped", file=sys.stderr)
+        return 130
+    _summary(report, cfg.out, code)
+    return code
+
+
+def _summary(rep: dict, out: Path, code: int) -> None:
+    verdict = {0: "SUCCESS", 1: "FAILED", 3: "CRASHED"}.get(code, str(code))
+    print(f"{verdict}: {rep['scenario']} (seed {rep['seed']}) sim {rep['sim_time_s']} s in {rep['wall_time_s']} s wall; "
+          f"leader at goal {rep['leader_time_to_goal_s']} s; collisions {rep['collisions']}; "
+          f"min/max robot distance {rep['min_robot_distance_m']}/{rep['max_robot_distance_m']} m; "
+          f"formation error rms {rep['formation_error_rms_m']} m")
+    for c in rep.get("crashed", []):
+        print(f"  crashed: {c['process']} (exit {c['exit_code']}): {c['log_tail']}")
+    print(f"report: {out / 'report.json'}")
+    if (out / "trajectories.png").exists():
+        print(f"plots:  {out / 'trajectories.png'}, {out / 'distances.png'}")
+
+
+def main() -> None:
+    sys.exit(cli())
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,305 @@
+"""``stack-fleet run``: a Zenoh router on loopback, the world, one ``stack-agent`` process per robot.
+
+The orchestrator watches the run over Zenoh (world clock and status, agents' diag and
+state), injects ``--kill ID@T`` faults, notices crashes, stops everything in order
+(agents first: SIGTERM -> their zero commands; then the world; then the router) and
+writes ``report.json`` and the plots.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zenoh
+
+from ..comm import Keys, MessageError, decode
+from ..comm.messages import Clock, Diag, State, WorldStatus
+from ..comm.session import SessionConfig, free_tcp_endpoint, open_session
+from ..scenario import Scenario
+from .report import build_report
+
+log = logging.getLogger("stack.fleet")
+
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_CRASH = 0, 1, 2, 3
+
+
+@dataclass
+class FleetConfig:
+    """One simulated fleet run."""
+
+    scenario: Scenario
+    """Validated scenario with the command line's overrides applied."""
+    out: Path
+    """Folder for report.json, plots, logs and the resolved scenario."""
+    realtime: bool = False
+    """Run the world on the wall clock instead of lock-step."""
+    gui: bool = False
+    """Open pybullet's GUI."""
+    listen: str | None = None
+    """Router endpoint; a free loopback port when None."""
+    kills: list[tuple[int, float]] = field(default_factory=list)
+    """(robot id, sim time): SIGKILL that agent then."""
+    fleet: str | None = None
+    """Fleet name (key prefix); derived from the out folder when None."""
+    progress: bool = True
+    """Show a live progress line on stderr."""
+    wall_timeout_s: float | None = None
+    """Give up after this much wall time (default: generous, from the duration)."""
+    plots: bool = True
+    """Write trajectories.png and distances.png."""
+
+
+class _Proc:
+    def __init__(self, name: str, argv: list[str], log_path: Path, env: dict):
+        self.name = name
+        self.log_path = log_path
+        self.log_file = open(log_path, "wb")
+        self.p = subprocess.Popen(argv, stdout=self.log_file, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+        self.asked_to_stop = False
+        self.killed_at: float | None = None
+
+    def poll(self) -> int | None:
+        return self.p.poll()
+
+    def signal(self, sig: int) -> None:
+        if self.p.poll() is None:
+            try:
+                self.p.send_signal(sig)
+            except ProcessLookupError:
+                pass
+
+    def stop(self, timeout: float = 5.0) -> int | None:
+        """SIGTERM, then SIGKILL after ``timeout``."""
+        self.asked_to_stop = True
+        self.signal(signal.SIGTERM)
+        try:
+            return self.p.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.signal(signal.SIGKILL)
+            return self.p.wait(5)
+
+    def tail(self, n: int = 5) -> str:
+        try:
+            lines = self.log_path.read_text(errors="replace").strip().splitlines()
+        except OSError:
+            return ""
+        return " | ".join(lines[-n:])
+
+    def close(self) -> None:
+        self.log_file.close()
+
+
+def _wait_port(endpoint: str, timeout: float = 10.0) -> None:
+    host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            with socket.create_connection((host.strip("[]"), int(port)), timeout=0.2):
+                return
+        except OSError:
+            time.sleep(0.05)
+    raise TimeoutError(f"router did not open {endpoint} within {timeout:.0f} s")
+
+
+class Monitor:
+    """What the orchestrator hears on Zenoh during a run."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys):
+        self.lock = threading.Lock()
+        self.t = 0.0
+        self.step = 0
+        self.status = "starting"
+        self.why = ""
+        self.diag: dict[int, Diag] = {}
+        self.estimates: dict[int, list[tuple[int, float, float]]] = {}
+        self.situation: dict[int, str] = {}
+        self._subs = [
+            session.declare_subscriber(keys.world("clock"), self._clock),
+            session.declare_subscriber(keys.world("status"), self._status),
+            session.declare_subscriber(keys.all_robots("diag"), self._diag),
+            session.declare_subscriber(keys.all_robots("state"), self._state),
+        ]
+
+    def _clock(self, s: zenoh.Sample) -> None:
+        try:
+            m = decode(s.payload.to_bytes(), Clock)
+        except MessageError:
+            return
+        with self.lock:
+            self.t, self.step = m.t, m.step
+
+    def _status(self, s: zenoh.Sample) -> None:
+        try:
+            m = decode(s.payload.to_bytes(), WorldStatus)
+        except MessageError:
+            return
+        with self.lock:
+            self.status, self.why = m.state, m.why
+
+    def _diag(self, s: zenoh.Sample) -> None:
+        try:
+            m = decode(s.payload.to_bytes(), Diag)
+        except MessageError:
+            return
+        with self.lock:
+            old = self.diag.get(m.id)
+            if old is None or m.step >= old.step or m.state == "stopped":
+                self.diag[m.id] = m
+
+    def _state(self, s: zenoh.Sample) -> None:
+        try:
+            m = decode(s.payload.to_bytes(), State)
+        except MessageError:
+            return
+        with self.lock:
+            self.estimates.setdefault(m.id, []).append((m.step, m.x, m.y))
+            if m.situation:
+                self.situation[m.id] = m.situation
+
+    def close(self) -> None:
+        for sub in self._subs:
+            sub.undeclare()
+
+
+def run_fleet(cfg: FleetConfig) -> tuple[int, dict]:
+    """Run one fleet to its end; returns (exit code, report)."""
+    sc = cfg.scenario
+    out = cfg.out
+    (out / "logs").mkdir(parents=True, exist_ok=True)
+    resolved = out / "scenario.resolved.yaml"
+    resolved.write_text(sc.to_yaml())
+    fleet = cfg.fleet or f"run{os.getpid()}"
+    keys = Keys(fleet)
+    endpoint = cfg.listen or free_tcp_endpoint()
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    py = sys.executable
+    procs: dict[str, _Proc] = {}
+    faults: list[dict] = []
+    crashed: list[dict] = []
+    wall0 = time.monotonic()
+    wall_limit = cfg.wall_timeout_s or max(120.0, sc.duration * (3.0 if cfg.realtime else 2.0) + 60.0)
+
+    router = _Proc("router", [py, "-m", "stack.comm.router", "--listen", endpoint], out / "logs" / "router.log", env)
+    try:
+        _wait_port(endpoint)
+        with open_session(SessionConfig(mode="client", connect=[endpoint])) as session:
+            mon = Monitor(session, keys)
+            world_argv = [py, "-m", "stack.sim_bridge", "--scenario", str(resolved), "--connect", endpoint, "--fleet", fleet,
+                          "--out", str(out)]
+            if cfg.realtime:
+                world_argv.append("--realtime")
+            if cfg.gui:
+                world_argv.append("--gui")
+            procs["world"] = _Proc("world", world_argv, out / "logs" / "world.log", env)
+            for r in sc.robots:
+                argv = [py, "-m", "stack.agents", "--id", str(r.id), "--scenario", str(resolved), "--connect", endpoint,
+                        "--fleet", fleet, "--log-level", "INFO"]
+                if r.role:
+                    argv += ["--role", r.role]
+                if not cfg.realtime:
+                    argv.append("--lockstep")
+                procs[f"agent-{r.id}"] = _Proc(f"agent {r.id}", argv, out / "logs" / f"agent-{r.id}.log", env)
+
+            pending_kills = sorted(cfg.kills, key=lambda k: k[1])
+            progress = _Progress(sc, enabled=cfg.progress)
+            while True:
+                time.sleep(0.05)
+                with mon.lock:
+                    t, status = mon.t, mon.status
+                progress.update(t, time.monotonic() - wall0)
+                while pending_kills and t >= pending_kills[0][1]:
+                    rid, at = pending_kills.pop(0)
+                    pr = procs[f"agent-{rid}"]
+                    pr.killed_at = t
+                    pr.signal(signal.SIGKILL)
+                    faults.append({"robot": rid, "kind": "killed", "at_s": at, "sim_time_s": t})
+                for name, pr in procs.items():
+                    rc = pr.poll()
+                    if rc is not None and not pr.asked_to_stop and pr.killed_at is None and name != "world" \
+                            and not any(c["process"] == pr.name for c in crashed):
+                        crashed.append({"process": pr.name, "exit_code": rc, "sim_time_s": t, "log_tail": pr.tail()})
+                        faults.append({"robot": int(name.split("-")[1]), "kind": "crashed", "exit_code": rc, "sim_time_s": t})
+                wrc = procs["world"].poll()
+                if status == "done" or wrc is not None:
+                    break
+                if time.monotonic() - wall0 > wall_limit:
+                    crashed.append({"process": "world", "exit_code": None, "sim_time_s": t,
+                                    "log_tail": f"no end after {wall_limit:.0f} s wall time"})
+                    break
+            progress.close()
+            # stop in order: agents (zero velocity on the way out), then the world, then the router
+            agents = [pr for n, pr in procs.items() if n.startswith("agent-")]
+            for pr in agents:
+                pr.asked_to_stop = pr.asked_to_stop or pr.poll() is None
+                pr.signal(signal.SIGTERM)
+            for pr in agents:
+                try:
+                    pr.p.wait(10)
+                except subprocess.TimeoutExpired:
+                    pr.signal(signal.SIGKILL)
+                    pr.p.wait(5)
+            for pr in agents:
+                rc = pr.poll()
+                if pr.killed_at is None and rc not in (0, None) and not any(c["process"] == pr.name for c in crashed):
+                    crashed.append({"process": pr.name, "exit_code": rc, "sim_time_s": mon.t, "log_tail": pr.tail()})
+            world = procs["world"]
+            try:
+                wrc = world.p.wait(15)
+            except subprocess.TimeoutExpired:
+                wrc = world.stop()
+            if wrc != 0:
+                crashed.append({"process": "world", "exit_code": wrc, "sim_time_s": mon.t, "log_tail": world.tail()})
+            mon.close()
+            with mon.lock:
+                diags = dict(mon.diag)
+                estimates = {k: list(v) for k, v in mon.estimates.items()}
+    finally:
+        for pr in procs.values():
+            if pr.poll() is None:
+                pr.stop(2)
+            pr.close()
+        router.stop(5)
+        router.close()
+
+    wall = time.monotonic() - wall0
+    report = build_report(sc, out, diags=diags, estimates=estimates, faults=faults, crashed=crashed,
+                          wall_time_s=wall, realtime=cfg.realtime, plots=cfg.plots)
+    code = EXIT_CRASH if crashed else (EXIT_OK if report["success"] else EXIT_FAILED)
+    return code, report
+
+
+class _Progress:
+    """A live progress line: sim time, leader distance to goal, speed."""
+
+    def __init__(self, sc: Scenario, enabled: bool):
+        self.enabled = enabled
+        self.sc = sc
+        self.bar = None
+        if enabled:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=round(sc.duration, 1), unit="sim s", desc=sc.name, file=sys.stderr,
+                            mininterval=0.5, leave=True)
+            self._last = 0.0
+
+    def update(self, t: float, wall: float) -> None:
+        if self.bar is None:
+            return
+        t = round(min(t, self.sc.duration), 1)
+        if t > self._last:
+            self.bar.update(t - self._last)
+            self._last = t
+            self.bar.set_postfix_str(f"x{t / wall:.1f} real time" if wall > 0 else "", refresh=False)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()

@@ -1,0 +1,50 @@
+"""The policy interface: ``act(observation) -> (v, w)``.
+
+A policy sees an :class:`Observation` in the robot's own frame and returns body-frame
+velocities; it imports no Zenoh, no driver and no world, so it can be trained and tested
+alone. Limits are enforced by the driver base, not here.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Observation:
+    """What one robot knows at one control step (Bai 2022 section III-B, before normalisation).
+
+    d_g, alpha_g: distance [m] and bearing [rad, robot frame] of the target, eq. (11)-(12).
+    v, w: the robot's current velocity, o_v.
+    neighbours: (n, 2) array of [distance, bearing] of robots within comm range, o_r,
+        in reverse order of distance (farthest first).
+    scans: (k, beams) array, the last k lidar scans [m], newest last, o_z.
+    goal_velocity: world-frame velocity of the target (a follower's slot moves with the leader).
+    yaw: the robot's heading [rad] (to turn goal_velocity into the robot frame).
+    scan_range: the lidar's maximum range [m].
+    """
+
+    d_g: float
+    alpha_g: float
+    v: float
+    w: float
+    neighbours: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    scans: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    goal_velocity: tuple[float, float] = (0.0, 0.0)
+    yaw: float = 0.0
+    scan_range: float = 5.0
+    dt: float = 0.1
+
+
+class Policy(ABC):
+    name = "base"
+
+    @abstractmethod
+    def act(self, obs: Observation) -> tuple[float, float]:
+        """Body-frame (v, w) for this step."""
+
+    def reset(self) -> None:
+        """Forget internal state (integrators, recurrent memory)."""

@@ -1,0 +1,10 @@
+"""Build policies from a robot's config (duck-typed: policies import nothing of ours above them)."""
+
+from __future__ import annotations
+
+from .pid import PidGains, PidPolicy
+
+
+def make_pid(robot, **_) -> PidPolicy:
+    p = robot.pid
+    return PidPolicy(PidGains(k_v=p.k_v, k_w=p.k_w, k_i=p.k_i, k_d=p.k_d, v_cap=robot.v_max))

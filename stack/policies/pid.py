@@ -1,0 +1,62 @@
+"""PID go-to-goal: drive straight toward the target (Bai 2022, situation 1 of both roles).
+
+Heading: w = k_w e + k_i sum(e) dt + k_d de/dt on the bearing error e = alpha_g.
+Speed:   v = (k_v d_g + u_ff) cos(e), floored at 0 (no reversing), capped at v_cap,
+where u_ff is the target's own speed along the line of sight (a follower's slot moves
+with the leader; zero for a fixed goal).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from .base import Observation, Policy
+
+
+@dataclass
+class PidGains:
+    k_v: float = 0.8
+    k_w: float = 2.0
+    k_i: float = 0.0
+    k_d: float = 0.1
+    v_cap: float = 1.0  # the speed this policy asks for at most [m/s]
+    arrive: float = 0.05  # within this of the target, hold still [m]
+
+
+class PidPolicy(Policy):
+    name = "pid"
+
+    def __init__(self, gains: PidGains):
+        self.g = gains
+        self._int = 0.0
+        self._prev: float | None = None
+
+    def reset(self) -> None:
+        self._int, self._prev = 0.0, None
+
+    def act(self, obs: Observation) -> tuple[float, float]:
+        g = self.g
+        # the goal's velocity in the robot frame, and its part along the line of sight
+        gvx, gvy = obs.goal_velocity
+        c, s = math.cos(obs.yaw), math.sin(obs.yaw)
+        fx, fy = c * gvx + s * gvy, -s * gvx + c * gvy
+        u_ff = fx * math.cos(obs.alpha_g) + fy * math.sin(obs.alpha_g)
+        if obs.d_g < g.arrive and math.hypot(gvx, gvy) < 1e-3:
+            self.reset()
+            return 0.0, 0.0
+        # aim at the goal; when it moves and we are close, aim along its motion instead
+        e = obs.alpha_g
+        if obs.d_g < 0.3 and math.hypot(gvx, gvy) > 1e-3:
+            e = math.atan2(fy, fx)
+        de = 0.0 if self._prev is None else _wrap(e - self._prev) / obs.dt
+        self._prev = e
+        self._int = max(-1.0, min(1.0, self._int + e * obs.dt))
+        w = g.k_w * e + g.k_i * self._int + g.k_d * de
+        v = (g.k_v * obs.d_g + max(0.0, u_ff)) * math.cos(e)
+        v = max(0.0, min(g.v_cap, v))
+        return v, w
+
+
+def _wrap(a: float) -> float:
+    return math.atan2(math.sin(a), math.cos(a))

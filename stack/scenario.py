@@ -1,0 +1,539 @@
+"""Scenario files: the single place where YAML turns into typed configs.
+
+Every field of ``shared/spec/INTERFACES.md`` section 2 is read here, checked for type and
+range, and rejected with its path when unknown or wrong, e.g.::
+
+    scenario.yaml: robots[2].pose: expected 3 numbers, got 2
+
+The loader returns a frozen :class:`Scenario`; every process of a fleet (world, agents,
+orchestrator) reads the same resolved file, written by the orchestrator next to the report.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+POLICIES = ("pid", "drl", "aina", "fuzzy", "fuzzy-lstm", "qlearn")
+DRIVERS = ("sim", "can", "mavlink", "jackal")
+ROLES = ("leader", "follower")
+
+
+class ScenarioError(ValueError):
+    """A scenario (or an override) that cannot be used. ``str()`` is the one-line message."""
+
+
+# ---------------------------------------------------------------------------------------
+# Typed configs
+# ---------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    """A static obstacle. ``type`` is cylinder, box or wall; unused fields stay 0."""
+
+    type: str
+    x: float = 0.0
+    y: float = 0.0
+    radius: float = 0.0
+    size_x: float = 0.0
+    size_y: float = 0.0
+    yaw: float = 0.0  # rad
+    start: tuple[float, float] = (0.0, 0.0)  # wall `from`
+    end: tuple[float, float] = (0.0, 0.0)  # wall `to`
+    thickness: float = 0.0
+
+    def as_box(self) -> tuple[float, float, float, float, float]:
+        """Walls and boxes as (cx, cy, half_x, half_y, yaw)."""
+        if self.type == "box":
+            return self.x, self.y, self.size_x / 2, self.size_y / 2, self.yaw
+        if self.type == "wall":
+            (x0, y0), (x1, y1) = self.start, self.end
+            length = math.hypot(x1 - x0, y1 - y0)
+            return (x0 + x1) / 2, (y0 + y1) / 2, length / 2, self.thickness / 2, math.atan2(y1 - y0, x1 - x0)
+        raise ValueError("a cylinder is not a box")
+
+
+@dataclass(frozen=True)
+class LidarConfig:
+    beams: int = 180
+    fov: float = math.pi  # rad (YAML: fov_deg)
+    range: float = 5.0
+    noise_std: float = 0.0
+
+
+@dataclass(frozen=True)
+class BaseConfig:
+    """The differential-drive base behind the simulated driver."""
+
+    track: float = 0.5  # wheel separation [m]
+    wheel_radius: float = 0.1  # [m]
+    wheel_accel: float = 30.0  # wheel angular acceleration limit [rad/s^2]
+
+
+@dataclass(frozen=True)
+class PidConfig:
+    """Gains of the go-to-goal PID policy (``stack.policies.pid``)."""
+
+    k_v: float = 0.8  # linear speed per metre of distance [1/s]
+    k_w: float = 2.0  # angular rate per radian of heading error [1/s]
+    k_i: float = 0.0  # integral gain on heading error
+    k_d: float = 0.1  # derivative gain on heading error
+    v_cruise: float = 0.6  # leader's cruise speed as a fraction of v_max
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    id: int
+    role: str | None
+    pose: tuple[float, float, float]  # x, y, yaw [rad]
+    policy: str = "pid"
+    driver: str = "sim"
+    radius: float = 0.5
+    v_max: float = 1.0
+    w_max: float = 1.0
+    lidar: LidarConfig = field(default_factory=LidarConfig)
+    odom_noise: tuple[float, float] = (0.0, 0.0)  # v_std, w_std
+    imu_noise: float = 0.0  # yaw-rate std [rad/s]
+    comm_range: float = 10.0
+    cmd_timeout: float = 0.5  # driver watchdog: stale command -> zero [s]
+    base: BaseConfig = field(default_factory=BaseConfig)
+    pid: PidConfig = field(default_factory=PidConfig)
+    goal: tuple[float, float] | None = None
+    driver_params: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class BurstConfig:
+    """Gilbert-Elliott two-state channel."""
+
+    p_good_bad: float
+    p_bad_good: float
+    loss_bad: float
+    loss_good: float = 0.0
+
+
+@dataclass(frozen=True)
+class CommConfig:
+    loss: float = 0.0
+    burst: BurstConfig | None = None
+    latency_ms: float = 0.0
+    jitter_ms: float = 0.0
+
+
+@dataclass(frozen=True)
+class Slot:
+    L: float
+    psi: float  # rad
+
+
+@dataclass(frozen=True)
+class FormationConfig:
+    leader: int
+    goal: tuple[float, float]
+    slots: dict[int, Slot]
+    d_safe: float = 3.0  # Bai 2022 section V-A
+    d_leader_slow: float = 5.0  # eq. (20)
+
+
+@dataclass(frozen=True)
+class SuccessConfig:
+    goal_tolerance: float = 0.5
+    max_time: float | None = None
+    no_collisions: bool = True
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    seed: int
+    dt: float
+    duration: float
+    obstacles: tuple[Obstacle, ...]
+    robots: tuple[RobotConfig, ...]
+    comm: CommConfig
+    formation: FormationConfig | None
+    coordination: str | None
+    success: SuccessConfig
+    source: str = "<scenario>"
+    raw: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def robot(self, robot_id: int) -> RobotConfig:
+        for r in self.robots:
+            if r.id == robot_id:
+                return r
+        raise ScenarioError(f"{self.source}: robots: no robot with id {robot_id}")
+
+    @property
+    def ids(self) -> list[int]:
+        return [r.id for r in self.robots]
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.raw, sort_keys=False)
+
+
+# ---------------------------------------------------------------------------------------
+# Field checks
+# ---------------------------------------------------------------------------------------
+
+
+class _Reader:
+    def __init__(self, source: str):
+        self.source = source
+
+    def fail(self, path: str, what: str) -> ScenarioError:
+        return ScenarioError(f"{self.source}: {path}: {what}")
+
+    def mapping(self, value: Any, path: str, allowed: set[str]) -> dict:
+        if not isinstance(value, dict):
+            raise self.fail(path, f"expected a mapping, got {_kind(value)}")
+        for key in value:
+            if key not in allowed:
+                raise self.fail(f"{path}.{key}" if path else str(key), f"unknown field (allowed: {', '.join(sorted(allowed))})")
+        return value
+
+    def number(self, value: Any, path: str, lo: float | None = None, hi: float | None = None, *, lo_open: bool = False) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(path, f"expected a number, got {_kind(value)}")
+        v = float(value)
+        if not math.isfinite(v):
+            raise self.fail(path, f"expected a finite number, got {value}")
+        if lo is not None and (v < lo or (lo_open and v == lo)):
+            raise self.fail(path, f"must be {'>' if lo_open else '>='} {lo:g}, got {v:g}")
+        if hi is not None and v > hi:
+            raise self.fail(path, f"must be <= {hi:g}, got {v:g}")
+        return v
+
+    def integer(self, value: Any, path: str, lo: int | None = None) -> int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.fail(path, f"expected an integer, got {_kind(value)}")
+        if lo is not None and value < lo:
+            raise self.fail(path, f"must be >= {lo}, got {value}")
+        return value
+
+    def vector(self, value: Any, path: str, n: int) -> tuple[float, ...]:
+        if not isinstance(value, (list, tuple)):
+            raise self.fail(path, f"expected {n} numbers, got {_kind(value)}")
+        if len(value) != n:
+            raise self.fail(path, f"expected {n} numbers, got {len(value)}")
+        return tuple(self.number(v, f"{path}[{i}]") for i, v in enumerate(value))
+
+    def choice(self, value: Any, path: str, options: tuple[str, ...]) -> str:
+        if value not in options:
+            raise self.fail(path, f"expected one of {', '.join(options)}, got {value!r}")
+        return value
+
+    def boolean(self, value: Any, path: str) -> bool:
+        if not isinstance(value, bool):
+            raise self.fail(path, f"expected true or false, got {_kind(value)}")
+        return value
+
+
+def _kind(value: Any) -> str:
+    if value is None:
+        return "nothing"
+    if isinstance(value, bool):
+        return f"a boolean ({value})"
+    if isinstance(value, (int, float)):
+        return f"a number ({value})"
+    if isinstance(value, str):
+        return f"text ({value!r})"
+    if isinstance(value, (list, tuple)):
+        return f"a list of {len(value)}"
+    if isinstance(value, dict):
+        return "a mapping"
+    return type(value).__name__
+
+
+_ROBOT_KEYS = {"radius", "v_max", "w_max", "lidar", "odom_noise", "imu_noise", "comm_range", "cmd_timeout", "base", "pid", "policy", "driver"} | set(DRIVERS)
+
+
+def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict[str, Any]:
+    """Read the per-robot fields shared by ``robot:`` (defaults) and ``robots[i]``."""
+    out = dict(base)
+    if "radius" in d:
+        out["radius"] = rd.number(d["radius"], f"{path}.radius", 0.0, 10.0, lo_open=True)
+    if "v_max" in d:
+        out["v_max"] = rd.number(d["v_max"], f"{path}.v_max", 0.0, 20.0, lo_open=True)
+    if "w_max" in d:
+        out["w_max"] = rd.number(d["w_max"], f"{path}.w_max", 0.0, 20.0, lo_open=True)
+    if "comm_range" in d:
+        out["comm_range"] = rd.number(d["comm_range"], f"{path}.comm_range", 0.0, lo_open=True)
+    if "cmd_timeout" in d:
+        out["cmd_timeout"] = rd.number(d["cmd_timeout"], f"{path}.cmd_timeout", 0.0, 10.0, lo_open=True)
+    if "imu_noise" in d:
+        m = rd.mapping(d["imu_noise"], f"{path}.imu_noise", {"w_std"})
+        out["imu_noise"] = rd.number(m.get("w_std", 0.0), f"{path}.imu_noise.w_std", 0.0)
+    if "odom_noise" in d:
+        m = rd.mapping(d["odom_noise"], f"{path}.odom_noise", {"v_std", "w_std"})
+        prev = out.get("odom_noise", (0.0, 0.0))
+        out["odom_noise"] = (
+            rd.number(m.get("v_std", prev[0]), f"{path}.odom_noise.v_std", 0.0),
+            rd.number(m.get("w_std", prev[1]), f"{path}.odom_noise.w_std", 0.0),
+        )
+    if "lidar" in d:
+        m = rd.mapping(d["lidar"], f"{path}.lidar", {"beams", "fov_deg", "range", "noise_std"})
+        prev = out.get("lidar", LidarConfig())
+        out["lidar"] = LidarConfig(
+            beams=rd.integer(m.get("beams", prev.beams), f"{path}.lidar.beams", 1),
+            fov=math.radians(rd.number(m.get("fov_deg", math.degrees(prev.fov)), f"{path}.lidar.fov_deg", 0.0, 360.0, lo_open=True)),
+            range=rd.number(m.get("range", prev.range), f"{path}.lidar.range", 0.0, 100.0, lo_open=True),
+            noise_std=rd.number(m.get("noise_std", prev.noise_std), f"{path}.lidar.noise_std", 0.0),
+        )
+    if "base" in d:
+        m = rd.mapping(d["base"], f"{path}.base", {"track", "wheel_radius", "wheel_accel"})
+        prev = out.get("base", BaseConfig())
+        out["base"] = BaseConfig(
+            track=rd.number(m.get("track", prev.track), f"{path}.base.track", 0.0, 10.0, lo_open=True),
+            wheel_radius=rd.number(m.get("wheel_radius", prev.wheel_radius), f"{path}.base.wheel_radius", 0.0, 5.0, lo_open=True),
+            wheel_accel=rd.number(m.get("wheel_accel", prev.wheel_accel), f"{path}.base.wheel_accel", 0.0, lo_open=True),
+        )
+    if "pid" in d:
+        names = {f for f in PidConfig.__dataclass_fields__}
+        m = rd.mapping(d["pid"], f"{path}.pid", names)
+        prev = out.get("pid", PidConfig())
+        vals = {k: rd.number(v, f"{path}.pid.{k}", 0.0) for k, v in m.items()}
+        if "v_cruise" in vals and vals["v_cruise"] > 1.0:
+            raise rd.fail(f"{path}.pid.v_cruise", f"must be <= 1 (a fraction of v_max), got {vals['v_cruise']:g}")
+        out["pid"] = replace(prev, **vals)
+    if "policy" in d:
+        out["policy"] = rd.choice(d["policy"], f"{path}.policy", POLICIES)
+    if "driver" in d:
+        out["driver"] = rd.choice(d["driver"], f"{path}.driver", DRIVERS)
+    params = dict(out.get("driver_params", {}))
+    for name in DRIVERS:
+        if name in d:
+            params[name] = dict(rd.mapping(d[name], f"{path}.{name}", set(d[name]) if isinstance(d[name], dict) else set()))
+    out["driver_params"] = params
+    return out
+
+
+def _obstacle(rd: _Reader, d: Any, path: str) -> Obstacle:
+    if not isinstance(d, dict) or "type" not in d:
+        raise rd.fail(path, "expected a mapping with a type (cylinder, box or wall)")
+    kind = rd.choice(d["type"], f"{path}.type", ("cylinder", "box", "wall"))
+    if kind == "cylinder":
+        rd.mapping(d, path, {"type", "x", "y", "radius"})
+        for k in ("x", "y", "radius"):
+            if k not in d:
+                raise rd.fail(f"{path}.{k}", "missing")
+        return Obstacle("cylinder", x=rd.number(d["x"], f"{path}.x"), y=rd.number(d["y"], f"{path}.y"),
+                        radius=rd.number(d["radius"], f"{path}.radius", 0.0, lo_open=True))
+    if kind == "box":
+        rd.mapping(d, path, {"type", "x", "y", "size_x", "size_y", "yaw_deg"})
+        for k in ("x", "y", "size_x", "size_y"):
+            if k not in d:
+                raise rd.fail(f"{path}.{k}", "missing")
+        return Obstacle("box", x=rd.number(d["x"], f"{path}.x"), y=rd.number(d["y"], f"{path}.y"),
+                        size_x=rd.number(d["size_x"], f"{path}.size_x", 0.0, lo_open=True),
+                        size_y=rd.number(d["size_y"], f"{path}.size_y", 0.0, lo_open=True),
+                        yaw=math.radians(rd.number(d.get("yaw_deg", 0.0), f"{path}.yaw_deg")))
+    rd.mapping(d, path, {"type", "from", "to", "thickness"})
+    for k in ("from", "to"):
+        if k not in d:
+            raise rd.fail(f"{path}.{k}", "missing")
+    a = rd.vector(d["from"], f"{path}.from", 2)
+    b = rd.vector(d["to"], f"{path}.to", 2)
+    if a == b:
+        raise rd.fail(f"{path}.to", "a wall needs two different end points")
+    return Obstacle("wall", start=a, end=b, thickness=rd.number(d.get("thickness", 0.2), f"{path}.thickness", 0.0, lo_open=True))
+
+
+_TOP_KEYS = {"name", "seed", "dt", "duration", "world", "robot", "comm", "formation", "robots", "success", "coordination"}
+
+
+def parse_scenario(data: Any, source: str = "<scenario>") -> Scenario:
+    """Validate a scenario given as parsed YAML; raise :class:`ScenarioError` on the first problem."""
+    rd = _Reader(source)
+    d = rd.mapping(data, "", _TOP_KEYS)
+    for k in ("dt", "robots"):
+        if k not in d:
+            raise rd.fail(k, "missing")
+    name = str(d.get("name", Path(source).stem))
+    seed = rd.integer(d.get("seed", 0), "seed", 0)
+    dt = rd.number(d["dt"], "dt", 0.0, 10.0, lo_open=True)
+    duration = rd.number(d.get("duration", 120.0), "duration", 0.0, lo_open=True)
+    if duration < dt:
+        raise rd.fail("duration", f"must be at least one step (dt = {dt:g}), got {duration:g}")
+
+    world = rd.mapping(d.get("world", {}) or {}, "world", {"obstacles"})
+    obs_list = world.get("obstacles", []) or []
+    if not isinstance(obs_list, list):
+        raise rd.fail("world.obstacles", f"expected a list, got {_kind(obs_list)}")
+    obstacles = tuple(_obstacle(rd, o, f"world.obstacles[{i}]") for i, o in enumerate(obs_list))
+
+    defaults = rd.mapping(d.get("robot", {}) or {}, "robot", _ROBOT_KEYS)
+    base_fields = _robot_fields(rd, defaults, "robot", {})
+
+    comm_d = rd.mapping(d.get("comm", {}) or {}, "comm", {"loss", "burst", "latency_ms", "jitter_ms"})
+    burst = None
+    if comm_d.get("burst") is not None:
+        b = rd.mapping(comm_d["burst"], "comm.burst", {"p_good_bad", "p_bad_good", "loss_bad", "loss_good"})
+        for k in ("p_good_bad", "p_bad_good", "loss_bad"):
+            if k not in b:
+                raise rd.fail(f"comm.burst.{k}", "missing")
+        burst = BurstConfig(**{k: rd.number(v, f"comm.burst.{k}", 0.0, 1.0) for k, v in b.items()})
+        if burst.p_bad_good == 0.0:
+            raise rd.fail("comm.burst.p_bad_good", "must be > 0, or the channel never leaves the bad state")
+    comm = CommConfig(
+        loss=rd.number(comm_d.get("loss", 0.0), "comm.loss", 0.0, 1.0),
+        burst=burst,
+        latency_ms=rd.number(comm_d.get("latency_ms", 0.0), "comm.latency_ms", 0.0, 60_000.0),
+        jitter_ms=rd.number(comm_d.get("jitter_ms", 0.0), "comm.jitter_ms", 0.0, 60_000.0),
+    )
+
+    robots_d = d["robots"]
+    if not isinstance(robots_d, list) or not robots_d:
+        raise rd.fail("robots", f"expected a non-empty list, got {_kind(robots_d)}")
+    robots: list[RobotConfig] = []
+    seen: set[int] = set()
+    coordination = None
+    if "coordination" in d:
+        coordination = rd.choice(d["coordination"], "coordination", ("arrival_time",))
+    for i, r in enumerate(robots_d):
+        p = f"robots[{i}]"
+        r = rd.mapping(r, p, _ROBOT_KEYS | {"id", "role", "pose", "goal"})
+        if "id" not in r:
+            raise rd.fail(f"{p}.id", "missing")
+        rid = rd.integer(r["id"], f"{p}.id", 0)
+        if rid in seen:
+            raise rd.fail(f"{p}.id", f"duplicate id {rid}")
+        seen.add(rid)
+        if "pose" not in r:
+            raise rd.fail(f"{p}.pose", "missing")
+        x, y, yaw_deg = rd.vector(r["pose"], f"{p}.pose", 3)
+        role = rd.choice(r["role"], f"{p}.role", ROLES) if "role" in r else None
+        goal = rd.vector(r["goal"], f"{p}.goal", 2) if "goal" in r else None
+        fields_ = _robot_fields(rd, r, p, base_fields)
+        robots.append(RobotConfig(id=rid, role=role, pose=(x, y, math.radians(yaw_deg)), goal=goal, **fields_))
+
+    formation = None
+    if "formation" in d and d["formation"] is not None:
+        f = rd.mapping(d["formation"], "formation", {"leader", "goal", "slots", "d_safe"})
+        for k in ("leader", "goal"):
+            if k not in f:
+                raise rd.fail(f"formation.{k}", "missing")
+        leader = rd.integer(f["leader"], "formation.leader", 0)
+        if leader not in seen:
+            raise rd.fail("formation.leader", f"no robot with id {leader}")
+        slots_d = f.get("slots", {}) or {}
+        if not isinstance(slots_d, dict):
+            raise rd.fail("formation.slots", f"expected a mapping of robot id to {{L, psi_deg}}, got {_kind(slots_d)}")
+        slots: dict[int, Slot] = {}
+        for key, s in slots_d.items():
+            sp = f"formation.slots.{key}"
+            try:
+                sid = int(key)
+            except (TypeError, ValueError):
+                raise rd.fail(sp, "slot keys are robot ids") from None
+            if sid not in seen:
+                raise rd.fail(sp, f"no robot with id {sid}")
+            if sid == leader:
+                raise rd.fail(sp, "the leader has no slot")
+            s = rd.mapping(s, sp, {"L", "psi_deg"})
+            for k in ("L", "psi_deg"):
+                if k not in s:
+                    raise rd.fail(f"{sp}.{k}", "missing")
+            slots[sid] = Slot(L=rd.number(s["L"], f"{sp}.L", 0.0), psi=math.radians(rd.number(s["psi_deg"], f"{sp}.psi_deg")))
+        formation = FormationConfig(
+            leader=leader,
+            goal=rd.vector(f["goal"], "formation.goal", 2),
+            slots=slots,
+            d_safe=rd.number(f.get("d_safe", 3.0), "formation.d_safe", 0.0),
+        )
+        for i, r in enumerate(robots):
+            want = "leader" if r.id == leader else "follower"
+            if r.role is None:
+                robots[i] = replace(r, role=want)
+            elif r.role != want:
+                raise rd.fail(f"robots[{i}].role", f"robot {r.id} is {r.role} but formation.leader is {leader}")
+            if want == "follower" and r.id not in slots:
+                raise rd.fail("formation.slots", f"follower {r.id} has no slot")
+    elif coordination == "arrival_time":
+        for i, r in enumerate(robots):
+            if r.goal is None:
+                raise rd.fail(f"robots[{i}].goal", "an arrival-time task needs a goal for every robot")
+            if r.role is not None:
+                raise rd.fail(f"robots[{i}].role", "an arrival-time task has peers only: leave role out")
+    else:
+        raise rd.fail("formation", "missing (or give every robot a goal and coordination: arrival_time)")
+
+    s = rd.mapping(d.get("success", {}) or {}, "success", {"goal_tolerance", "max_time", "no_collisions"})
+    success = SuccessConfig(
+        goal_tolerance=rd.number(s.get("goal_tolerance", 0.5), "success.goal_tolerance", 0.0, lo_open=True),
+        max_time=rd.number(s["max_time"], "success.max_time", 0.0, lo_open=True) if "max_time" in s else None,
+        no_collisions=rd.boolean(s.get("no_collisions", True), "success.no_collisions"),
+    )
+    return Scenario(name=name, seed=seed, dt=dt, duration=duration, obstacles=obstacles, robots=tuple(robots),
+                    comm=comm, formation=formation, coordination=coordination, success=success,
+                    source=source, raw=data)
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Read and validate a scenario file."""
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as e:
+        raise ScenarioError(f"{p}: cannot read: {e.strerror or e}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        raise ScenarioError(f"{p}: {where}not valid YAML ({getattr(e, 'problem', None) or e})") from None
+    return parse_scenario(data, str(p))
+
+
+def with_overrides(sc: Scenario, *, policy: str | None = None, driver: str | None = None, loss: float | None = None,
+                   latency_ms: float | None = None, seed: int | None = None, duration: float | None = None) -> Scenario:
+    """Apply the command-line overrides of ``stack-fleet run`` to the raw YAML and validate again."""
+    raw = _deepcopy(sc.raw)
+    if policy is not None:
+        _check_flag("--policy", policy, POLICIES)
+        for r in raw["robots"]:
+            r["policy"] = policy
+        raw["robot"] = dict(raw.get("robot") or {}) | {"policy": policy}
+    if driver is not None:
+        _check_flag("--driver", driver, DRIVERS)
+        for r in raw["robots"]:
+            r["driver"] = driver
+    if loss is not None or latency_ms is not None:
+        comm = dict(raw.get("comm") or {})
+        if loss is not None:
+            comm["loss"] = loss
+        if latency_ms is not None:
+            comm["latency_ms"] = latency_ms
+        raw["comm"] = comm
+    if seed is not None:
+        raw["seed"] = seed
+    if duration is not None:
+        raw["duration"] = duration
+    return parse_scenario(raw, sc.source)
+
+
+def _check_flag(flag: str, value: str, options: tuple[str, ...]) -> None:
+    if value not in options:
+        raise ScenarioError(f"{flag}: expected one of {', '.join(options)}, got {value!r}")
+
+
+def _deepcopy(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _deepcopy(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_deepcopy(v) for v in x]
+    return x
+
+
+def slot_position(leader_xy: tuple[float, float], slot: Slot) -> tuple[float, float]:
+    """Bai 2022 eq. (3): x_F^g = x_L + L cos(psi), y_F^g = y_L + L sin(psi)."""
+    return leader_xy[0] + slot.L * math.cos(slot.psi), leader_xy[1] + slot.L * math.sin(slot.psi)
+
+
+def summary(sc: Scenario) -> dict:
+    """The resolved config as plain data, for logs."""
+    return asdict(sc) | {"raw": None}

@@ -1,0 +1,1 @@
+"""The simulated world (pybullet) and the simulated devices behind the drivers. Never imported by an agent."""

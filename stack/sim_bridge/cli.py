@@ -1,0 +1,59 @@
+"""``python -m stack.sim_bridge``: the world process (started by ``stack-fleet run``)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+from pathlib import Path
+
+from ..comm.session import EndpointError, SessionConfig, check_endpoint, open_session
+from ..scenario import ScenarioError, load_scenario
+from .server import WorldConfig, WorldServer
+
+log = logging.getLogger("stack.world")
+
+
+def main(cfg: WorldConfig) -> int:
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: cfg.stop.set())
+    with open_session(SessionConfig(mode="client", connect=[cfg.connect])) as session:
+        server = WorldServer(cfg, session)
+        try:
+            result = server.run()
+        except TimeoutError as e:
+            print(f"world: {e}", file=sys.stderr)
+            return 1
+        except KeyboardInterrupt:
+            return 0
+    server.write_result(result)
+    print(f"world: {result['end_reason']} at t={result['sim_time_s']:.1f} s after {result['steps']} steps", flush=True)
+    return 0
+
+
+def cli(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="stack-world", description="The pybullet world of a simulated fleet, on Zenoh.")
+    ap.add_argument("--scenario", required=True)
+    ap.add_argument("--connect", default="tcp/127.0.0.1:7447")
+    ap.add_argument("--fleet", default="default")
+    ap.add_argument("--out", type=Path)
+    ap.add_argument("--realtime", action="store_true")
+    ap.add_argument("--gui", action="store_true")
+    ap.add_argument("--duration", type=float)
+    ap.add_argument("--wait-agents", type=float, default=60.0)
+    ap.add_argument("--lockstep-timeout", type=float, default=2.0)
+    ap.add_argument("--no-stop-early", action="store_true", help="run the whole duration even when the task is done")
+    ap.add_argument("--log-level", default="WARNING")
+    a = ap.parse_args(argv)
+    logging.basicConfig(level=a.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    try:
+        sc = load_scenario(a.scenario)
+        check_endpoint(a.connect)
+    except (ScenarioError, EndpointError) as e:
+        print(f"stack-world: {e}", file=sys.stderr)
+        return 2
+    cfg = WorldConfig(scenario=sc, connect=a.connect, fleet=a.fleet, out=a.out, realtime=a.realtime, gui=a.gui,
+                      wait_agents_s=a.wait_agents, lockstep_timeout_s=a.lockstep_timeout, duration=a.duration,
+                      stop_early=not a.no_stop_early)
+    return main(cfg)

@@ -1,0 +1,292 @@
+"""The world process: the pybullet world on Zenoh.
+
+Per step k it publishes ``world/clock`` (k, t, who answered k-1), each robot's ``odom``,
+``imu`` and ``scan``, and ``world/truth`` (ground truth: for the orchestrator and tools,
+never read by agents). It then waits for every live agent's ``cmd_vel`` of step k
+(lock-step; an agent whose liveliness token is gone is not waited for, one that does not
+answer within ``lockstep_timeout_s`` is marked unresponsive and not waited for until it
+answers again) or for the wall clock (real time), and advances.
+
+Each simulated base has its device watchdog in sim time: a robot whose last command is
+older than its ``cmd_timeout`` gets zero.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+from ..comm import Keys, MessageError, decode, encode
+from ..comm.messages import Clock, CmdVel, Imu, Odom, Scan, Truth, WorldStatus
+from ..scenario import Scenario, slot_position
+from .world import World
+
+log = logging.getLogger("stack.world")
+
+SETTLE_S = 10.0  # after the leader arrives, run on at most this long for the followers to settle
+SETTLED_M = 0.3  # followers within this of their slots: the formation has settled
+
+
+@dataclass
+class WorldConfig:
+    """The world process's settings (the scenario brings the rest)."""
+
+    scenario: Scenario
+    """Validated, resolved scenario."""
+    connect: str = "tcp/127.0.0.1:7447"
+    """Router endpoint."""
+    fleet: str = "default"
+    """Key prefix ``stack/<fleet>/``."""
+    out: Path | None = None
+    """Folder for ``truth.npz`` and ``world.json``; nothing written when None."""
+    realtime: bool = False
+    """Step on the wall clock instead of waiting for every agent."""
+    gui: bool = False
+    """pybullet GUI instead of DIRECT."""
+    wait_agents_s: float = 60.0
+    """How long to wait for every robot's liveliness token before giving up."""
+    lockstep_timeout_s: float = 2.0
+    """An agent that does not answer a step within this (wall) is not waited for until it answers again."""
+    duration: float | None = None
+    """Sim time limit; default the scenario's duration."""
+    stop_early: bool = True
+    """End once the task is done (leader at goal and formation settled, or every peer at its goal)."""
+    stop: threading.Event = field(default_factory=threading.Event)
+
+
+class WorldServer:
+    def __init__(self, cfg: WorldConfig, session: zenoh.Session):
+        self.cfg = cfg
+        self.sc = cfg.scenario
+        self.s = session
+        self.keys = Keys(cfg.fleet)
+        self.world = World(self.sc, gui=cfg.gui)
+        self.ids = self.world.ids
+        self._cv = threading.Condition()
+        self.alive: set[int] = set()
+        self.unresponsive: set[int] = set()
+        self.cmds: dict[int, dict[int, tuple[float, float]]] = {}  # step -> id -> (v, w)
+        self.last_cmd: dict[int, tuple[float, float, float, int]] = {}  # id -> (v, w, sim t received, step)
+        self.malformed = 0
+        self.events: list[dict] = []
+        self.t = 0.0
+        self.k = 0
+        self.late_steps = 0
+
+    # --- callbacks -------------------------------------------------------------------
+    def _on_cmd(self, sample: zenoh.Sample) -> None:
+        rid = Keys.id_of(str(sample.key_expr))
+        try:
+            m = decode(sample.payload.to_bytes(), CmdVel)
+            if rid is None or m.id != rid or rid not in self.world.index:
+                raise MessageError("cmd_vel for an unknown robot or a key that does not match its id")
+        except MessageError:
+            with self._cv:
+                self.malformed += 1
+            return
+        with self._cv:
+            self.last_cmd[rid] = (m.v, m.w, self.t, m.step)
+            if m.step >= 0:
+                self.cmds.setdefault(m.step, {})[rid] = (m.v, m.w)
+                self.unresponsive.discard(rid)
+            self._cv.notify_all()
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        rid = Keys.id_of(str(sample.key_expr))
+        if rid is None or rid not in self.world.index:
+            return
+        with self._cv:
+            if sample.kind == zenoh.SampleKind.DELETE:
+                self.alive.discard(rid)
+                self.events.append({"t": self.t, "robot": rid, "event": "left"})
+            else:
+                if rid not in self.alive and self.k > 0:
+                    self.events.append({"t": self.t, "robot": rid, "event": "joined"})
+                self.alive.add(rid)
+            self._cv.notify_all()
+
+    # --- run ---------------------------------------------------------------------------
+    def run(self) -> dict:
+        k = self.keys
+        s = self.s
+        block = zenoh.CongestionControl.BLOCK
+        pubs = {(rid, t): s.declare_publisher(k.robot(rid, t), congestion_control=block)
+                for rid in self.ids for t in ("odom", "imu", "scan")}
+        clock_pub = s.declare_publisher(k.world("clock"), congestion_control=block)
+        truth_pub = s.declare_publisher(k.world("truth"), congestion_control=block)
+        status_pub = s.declare_publisher(k.world("status"), congestion_control=block)
+        subs = [s.declare_subscriber(k.all_robots("cmd_vel"), self._on_cmd),
+                s.liveliness().declare_subscriber(k.all_alive, self._on_alive, history=True)]
+        token = s.liveliness().declare_token(k.world("alive"))
+        try:
+            status_pub.put(encode(WorldStatus(state="waiting")))
+            self._wait_for_agents()
+            status_pub.put(encode(WorldStatus(state="running")))
+            result = self._loop(pubs, clock_pub, truth_pub)
+            status_pub.put(encode(WorldStatus(state="done", t=self.t, why=result["end_reason"])))
+            # let the agents stop (their final zero commands arrive) before we report what we saw last
+            self.linger(10.0)
+            return result
+        finally:
+            token.undeclare()
+            for sub in subs:
+                sub.undeclare()
+            self.world.close()
+
+    def _wait_for_agents(self) -> None:
+        deadline = time.monotonic() + self.cfg.wait_agents_s
+        with self._cv:
+            while not set(self.ids) <= self.alive:
+                if self.cfg.stop.is_set():
+                    raise KeyboardInterrupt
+                if time.monotonic() > deadline:
+                    missing = sorted(set(self.ids) - self.alive)
+                    raise TimeoutError(f"world: robots {missing} never came up within {self.cfg.wait_agents_s:.0f} s")
+                self._cv.wait(0.1)
+
+    def _loop(self, pubs, clock_pub, truth_pub) -> dict:
+        sc, w, dt = self.sc, self.world, self.sc.dt
+        duration = self.cfg.duration or sc.duration
+        n_steps = int(round(duration / dt))
+        log_rows: dict[str, list] = {k: [] for k in ("t", "x", "y", "yaw", "v", "w", "alive", "cmd_v", "cmd_w")}
+        wall0 = time.monotonic()
+        answered: list[int] = []
+        arrived_at: float | None = None
+        end_reason = "duration"
+        while True:
+            self.t = self.k * dt
+            stamp = self.t if not self.cfg.realtime else time.time()
+            clock_pub.put(encode(Clock(step=self.k, t=self.t, dt=dt, answered=answered, lockstep=not self.cfg.realtime)))
+            scans = w.lidar()
+            for rid in self.ids:
+                i = w.index[rid]
+                v, om = w.odometry(rid)
+                pubs[(rid, "odom")].put(encode(Odom(id=rid, step=self.k, stamp=stamp, v=v, w=om)))
+                pubs[(rid, "imu")].put(encode(Imu(id=rid, step=self.k, stamp=stamp, wz=w.gyro(rid))))
+                lid = sc.robots[i].lidar
+                inc = lid.fov / (lid.beams - 1) if lid.beams > 1 else 0.0
+                pubs[(rid, "scan")].put(encode(Scan(id=rid, step=self.k, stamp=stamp, angle_min=-lid.fov / 2 if lid.beams > 1 else 0.0,
+                                                    angle_increment=inc, range_max=lid.range, ranges=scans[rid].tolist())))
+            truth_pub.put(encode(Truth(step=self.k, t=self.t, ids=self.ids, x=w.x.tolist(), y=w.y.tolist(), yaw=w.yaw.tolist())))
+
+            with self._cv:
+                alive_now = set(self.alive)
+            log_rows["t"].append(self.t)
+            for key, arr in (("x", w.x), ("y", w.y), ("yaw", w.yaw), ("v", w.v), ("w", w.w)):
+                log_rows[key].append(arr.copy())
+            log_rows["alive"].append(np.array([rid in alive_now for rid in self.ids]))
+
+            # end of the run?
+            done, arrived_at = self._task_done(arrived_at)
+            if done:
+                end_reason = "task complete"
+                break
+            if self.k >= n_steps:
+                break
+            if self.cfg.stop.is_set():
+                end_reason = "stopped"
+                break
+            if not alive_now and self.k > 0:
+                end_reason = "no agent left"
+                break
+
+            # wait for commands of step k
+            if self.cfg.realtime:
+                delay = wall0 + (self.k + 1) * dt - time.monotonic()
+                if delay > 0:
+                    self.cfg.stop.wait(delay)
+            else:
+                self._wait_commands()
+            with self._cv:
+                step_cmds = self.cmds.pop(self.k, {})
+                answered = sorted(step_cmds)
+                commands = {}
+                for rid in self.ids:
+                    if not self.cfg.realtime and rid in step_cmds:
+                        commands[rid] = step_cmds[rid]
+                        continue
+                    last = self.last_cmd.get(rid)
+                    timeout = sc.robots[w.index[rid]].cmd_timeout
+                    # device watchdog (sim time): a stale command becomes zero
+                    commands[rid] = (last[0], last[1]) if last is not None and self.t - last[2] <= timeout else (0.0, 0.0)
+                for old in [s for s in self.cmds if s < self.k]:
+                    del self.cmds[old]
+            log_rows["cmd_v"].append(np.array([commands[r][0] for r in self.ids]))
+            log_rows["cmd_w"].append(np.array([commands[r][1] for r in self.ids]))
+            w.step(commands, dt)
+            self.k += 1
+
+        wall = time.monotonic() - wall0
+        log_rows["cmd_v"].append(np.zeros(len(self.ids)))
+        log_rows["cmd_w"].append(np.zeros(len(self.ids)))
+        result = {"end_reason": end_reason, "steps": self.k, "sim_time_s": self.t, "wall_time_s": wall,
+                  "steps_per_s": self.k / wall if wall > 0 else None, "late_steps": self.late_steps,
+                  "malformed": self.malformed, "events": self.events,
+                  "last_cmd": {str(r): {"v": c[0], "w": c[1], "t": c[2], "step": c[3]} for r, c in self.last_cmd.items()},
+                  "leader_arrival_s": arrived_at}
+        if self.cfg.out is not None:
+            self.cfg.out.mkdir(parents=True, exist_ok=True)
+            np.savez_compressed(self.cfg.out / "truth.npz", ids=np.array(self.ids),
+                                **{k: np.array(v) for k, v in log_rows.items()})
+        return result
+
+    def linger(self, timeout_s: float) -> None:
+        """After the run: wait until every agent has left (or a signal, or the timeout)."""
+        deadline = time.monotonic() + timeout_s
+        with self._cv:
+            while self.alive and not self.cfg.stop.is_set() and time.monotonic() < deadline:
+                self._cv.wait(0.1)
+
+    def write_result(self, result: dict) -> None:
+        """``world.json`` after the session has closed, so late messages (the agents' final zeros) are in."""
+        with self._cv:
+            result["last_cmd"] = {str(r): {"v": c[0], "w": c[1], "t": c[2], "step": c[3]} for r, c in self.last_cmd.items()}
+            result["malformed"] = self.malformed
+        if self.cfg.out is not None:
+            (self.cfg.out / "world.json").write_text(json.dumps(result, indent=2))
+
+    def _wait_commands(self) -> None:
+        deadline = time.monotonic() + self.cfg.lockstep_timeout_s
+        with self._cv:
+            while True:
+                got = self.cmds.get(self.k, {})
+                waiting = (self.alive - self.unresponsive) - set(got)
+                if not waiting or self.cfg.stop.is_set():
+                    return
+                if time.monotonic() > deadline:
+                    log.warning("world: step %d: no command from %s within %.1f s: not waiting for them", self.k,
+                                sorted(waiting), self.cfg.lockstep_timeout_s)
+                    self.unresponsive |= waiting
+                    self.late_steps += 1
+                    self.events.append({"t": self.t, "robots": sorted(waiting), "event": "unresponsive"})
+                    return
+                self._cv.wait(0.5)
+
+    def _task_done(self, arrived_at: float | None) -> tuple[bool, float | None]:
+        if not self.cfg.stop_early:
+            return False, arrived_at
+        sc, w = self.sc, self.world
+        tol = sc.success.goal_tolerance
+        if sc.formation is None:
+            goals = np.array([r.goal for r in sc.robots])
+            d = np.hypot(w.x - goals[:, 0], w.y - goals[:, 1])
+            return bool((d <= tol).all()), arrived_at
+        f = sc.formation
+        li = w.index[f.leader]
+        if np.hypot(w.x[li] - f.goal[0], w.y[li] - f.goal[1]) > tol:
+            return False, None
+        if arrived_at is None:
+            arrived_at = self.t
+        with self._cv:
+            alive = set(self.alive)
+        errs = [np.hypot(*(np.array(slot_position((w.x[li], w.y[li]), slot)) - [w.x[w.index[r]], w.y[w.index[r]]]))
+                for r, slot in f.slots.items() if r in alive]
+        settled = all(e < SETTLED_M for e in errs) and abs(w.v[li]) < 0.05
+        return settled or self.t - arrived_at >= SETTLE_S, arrived_at
