@@ -84,6 +84,7 @@ class Agent:
         self.step = -1
         self.sim_now = 0.0
         self.hist = LatencyHistogram()
+        self.state_latency = LatencyHistogram()
         self.fault = ""
         self._odo_step = -1
 
@@ -95,7 +96,8 @@ class Agent:
         self.pid = PidPolicy(PidGains(k_v=p.k_v, k_w=p.k_w, k_i=p.k_i, k_d=p.k_d,
                                       v_cap=self.robot.v_max * (p.v_cruise if role == "leader" else 1.0)))
         self.decision = DecisionLayer(self.id, role, sc.formation, goal=self.robot.goal, radius=self.robot.radius,
-                                      comm_range=self.robot.comm_range, scan_range=self.robot.lidar.range, dt=self.dt)
+                                      comm_range=self.robot.comm_range, scan_range=self.robot.lidar.range, dt=self.dt,
+                                      centre_heading=policy_name != "pid")
 
         # sensor and neighbour inboxes, filled by zenoh callbacks
         self._cv = threading.Condition()
@@ -169,6 +171,8 @@ class Agent:
         except MessageError:
             self._count_malformed(str(sample.key_expr))
             return
+        if m.wall is not None:
+            self.state_latency.add((time.time() - m.wall) * 1000.0)
         with self._cv:
             self._inbox.append(m)
             self._states_seen[m.id] = max(self._states_seen.get(m.id, -1), m.step)
@@ -326,7 +330,7 @@ class Agent:
 
         self.seq += 1
         st = State(id=self.id, role=self.role, seq=self.seq, stamp=self._stamp(), x=pose.x, y=pose.y, yaw=pose.yaw,
-                   v=pose.v, w=pose.w, step=k, situation=dec.situation)
+                   v=pose.v, w=pose.w, step=k, situation=dec.situation, wall=time.time())
         self._state_pub.put(encode(st))
         self.sent += 1
         self.driver.command(v, w, step=k)
@@ -341,5 +345,6 @@ class Agent:
         d = Diag(id=self.id, stamp=self._stamp(), step=self.step, state=state, sent=self.sent, received=c.received,
                  delivered=c.delivered, dropped_loss=c.dropped_loss, dropped_range=c.dropped_range,
                  malformed=sum(malformed.values()), malformed_by_key=malformed, loop_hist=self.hist.as_dict(),
+                 state_latency_hist=self.state_latency.as_dict(),
                  situations={k: v for k, v in self.decision.counts.items() if v}, fault=self.fault)
         self._diag_pub.put(encode(d))

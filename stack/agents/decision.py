@@ -80,7 +80,9 @@ def _polar(frm: tuple[float, float], yaw: float, to: tuple[float, float]) -> tup
 
 class DecisionLayer:
     def __init__(self, robot_id: int, role: str, formation, *, goal: tuple[float, float] | None, radius: float,
-                 comm_range: float, scan_range: float, dt: float):
+                 comm_range: float, scan_range: float, dt: float, centre_heading: bool = True):
+        """``centre_heading``: in follower situation 3, aim at the centre of the selected robots (eq. 21-22).
+        Meant for a network that avoids obstacles; a policy without avoidance (``pid``) keeps aiming at its slot."""
         self.id = robot_id
         self.role = role
         self.formation = formation
@@ -89,6 +91,7 @@ class DecisionLayer:
         self.comm_range = comm_range
         self.scan_range = scan_range
         self.dt = dt
+        self.centre_heading = centre_heading
         self.counts: dict[str, int] = {s: 0 for s in SITUATIONS}
 
     def decide(self, pose, now: float, neighbours: dict[int, Neighbour], scans: np.ndarray,
@@ -131,7 +134,7 @@ class DecisionLayer:
         # situation 3: eq. (21) selects robots i with cos<p_L - p_F, p_i - p_F> > 0, eq. (22) their centre
         lv = (lx - me[0], ly - me[1])
         sel = [o for o in others if lv[0] * (o[0] - me[0]) + lv[1] * (o[1] - me[1]) > 0]
-        if sel:
+        if sel and self.centre_heading:
             xc, yc = sum(o[0] for o in sel) / len(sel), sum(o[1] for o in sel) / len(sel)
             alpha = _polar(me, pose.yaw, (xc, yc))[1]
         else:

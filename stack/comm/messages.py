@@ -43,6 +43,7 @@ class State(_Msg):
     step: int = -1
     cov_trace: float | None = None
     situation: str | None = None
+    wall: float | None = None  # sender's wall clock at sending (UNIX s), for latency measurement
 
 
 class CmdVel(_Msg):
@@ -138,6 +139,7 @@ class Diag(_Msg):
     malformed: int = 0
     malformed_by_key: dict[str, int] = {}
     loop_hist: dict[int, int] = {}
+    state_latency_hist: dict[int, int] = {}
     situations: dict[str, int] = {}
     fault: str = ""
 

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import re
+import signal
 import sys
 from pathlib import Path
 
@@ -114,6 +114,10 @@ def cli(argv: list[str] | None = None) -> int:
     except (ScenarioError, EndpointError) as e:
         print(f"stack-fleet: {e}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    def on_term(signum, _frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, on_term)  # tear the fleet down in order, as on Ctrl-C
     try:
         code, report = run_fleet(cfg)
     except KeyboardInterrupt:

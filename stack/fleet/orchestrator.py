@@ -98,10 +98,16 @@ class _Proc:
         self.log_file.close()
 
 
-def _wait_port(endpoint: str, timeout: float = 10.0) -> None:
+class _Abort(Exception):
+    """The fleet could not start; the report says why."""
+
+
+def _wait_port(endpoint: str, timeout: float = 10.0, process: "_Proc | None" = None) -> None:
     host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
+        if process is not None and process.poll() is not None:
+            raise TimeoutError(f"router exited with code {process.poll()} before opening {endpoint}")
         try:
             with socket.create_connection((host.strip("[]"), int(port)), timeout=0.2):
                 return
@@ -190,7 +196,11 @@ def run_fleet(cfg: FleetConfig) -> tuple[int, dict]:
 
     router = _Proc("router", [py, "-m", "stack.comm.router", "--listen", endpoint], out / "logs" / "router.log", env)
     try:
-        _wait_port(endpoint)
+        try:
+            _wait_port(endpoint, process=router)
+        except TimeoutError as e:
+            crashed.append({"process": "router", "exit_code": router.poll(), "sim_time_s": 0.0, "log_tail": f"{e}: {router.tail(2)}"})
+            raise _Abort from None
         with open_session(SessionConfig(mode="client", connect=[endpoint])) as session:
             mon = Monitor(session, keys)
             world_argv = [py, "-m", "stack.sim_bridge", "--scenario", str(resolved), "--connect", endpoint, "--fleet", fleet,
@@ -262,6 +272,8 @@ def run_fleet(cfg: FleetConfig) -> tuple[int, dict]:
             with mon.lock:
                 diags = dict(mon.diag)
                 estimates = {k: list(v) for k, v in mon.estimates.items()}
+    except _Abort:
+        diags, estimates = {}, {}
     finally:
         for pr in procs.values():
             if pr.poll() is None:

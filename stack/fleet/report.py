@@ -148,10 +148,12 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
     # comm and loop timing, summed over agents
     comm = {"sent": 0, "received": 0, "delivered": 0, "dropped_loss": 0, "dropped_range": 0, "malformed": 0}
     hist = LatencyHistogram()
+    lat = LatencyHistogram()
     for d in diags.values():
         for k in comm:
             comm[k] += getattr(d, k)
         hist.merge(d.loop_hist)
+        lat.merge(d.state_latency_hist)
     comm["malformed"] += int(world.get("malformed", 0))
 
     # success: the leader (or every peer) at its goal within max_time, no collisions if asked
@@ -184,6 +186,7 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
         "robots": robots,
         "comm": comm,
         "control_loop_ms": {"p50": _f(hist.percentile(50)), "p99": _f(hist.percentile(99)), "samples": hist.total},
+        "state_latency_ms": {"p50": _f(lat.percentile(50)), "p99": _f(lat.percentile(99)), "samples": lat.total},
         "faults": faults,
         "crashed": crashed,
         "end_reason": world.get("end_reason"),

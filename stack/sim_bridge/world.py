@@ -17,6 +17,7 @@ import pybullet as p
 ROBOT_HEIGHT = 0.4
 OBSTACLE_HEIGHT = 1.0
 LIDAR_Z = 0.2
+CULL_MARGIN = 0.05  # [m] added around every body when culling beams
 
 
 class World:
@@ -39,6 +40,10 @@ class World:
         self.robot_bodies = [self._add_robot(r) for r in scenario.robots]
         self._sync_bodies()
         self._ray_setup()
+        aabbs = [p.getAABB(b, physicsClientId=self.cid) for b in self.obstacle_bodies]
+        self.obstacle_aabbs = np.array([[a[0][:2], a[1][:2]] for a in aabbs]).reshape(-1, 2, 2)
+        self.cull = True  # cast only the beams that can hit something (exact; see _beam_mask)
+        self.rays_cast = 0
 
     # --- construction ------------------------------------------------------------------
     def _add_obstacle(self, o) -> int:
@@ -103,38 +108,83 @@ class World:
         self._sync_bodies()
 
     # --- sensors -----------------------------------------------------------------------
+    def _beam_mask(self, i: int) -> np.ndarray:
+        """Beams of robot i that can hit anything: those inside the angular span of a body within range.
+
+        Exact culling, not an approximation: a beam outside every nearby body's span cannot hit,
+        so it is not cast and reads max range. Static obstacles are bounded by their pybullet AABBs,
+        robots by their circles.
+        """
+        lid = self.sc.robots[i].lidar
+        ang = self.beam_angles[i]
+        x, y, yaw = self.x[i], self.y[i], self.yaw[i]
+        mask = np.zeros(ang.size, bool)
+        rel = lambda a: (a - yaw + np.pi) % (2 * np.pi) - np.pi  # noqa: E731  world bearing -> robot frame
+        spans: list[tuple[float, float]] = []
+        for j in range(len(self.ids)):
+            if j == i:
+                continue
+            dx, dy = self.x[j] - x, self.y[j] - y
+            d = math.hypot(dx, dy)
+            rj = self.sc.robots[j].radius + CULL_MARGIN  # bullet's collision margin makes shapes a little larger
+            if d - rj > lid.range:
+                continue
+            if d - rj <= self.ray_offsets[i]:
+                return np.ones(ang.size, bool)  # rays start inside or at the other body: cast everything
+            c = rel(math.atan2(dy, dx))
+            h = math.asin(min(1.0, rj / d))
+            spans.append((c - h, c + h))
+        lo, hi = self.obstacle_aabbs[:, 0], self.obstacle_aabbs[:, 1]
+        for (x0, y0), (x1, y1) in zip(lo, hi):
+            ddx = max(x0 - x, 0.0, x - x1)
+            ddy = max(y0 - y, 0.0, y - y1)
+            if math.hypot(ddx, ddy) > lid.range:
+                continue
+            if math.hypot(ddx, ddy) <= self.ray_offsets[i] + CULL_MARGIN:
+                return np.ones(ang.size, bool)  # rays may start inside the box: cast everything
+            corners = np.arctan2(np.array([y0, y0, y1, y1]) - y, np.array([x0, x1, x0, x1]) - x)
+            c = math.atan2(np.sin(corners).sum(), np.cos(corners).sum())
+            offs = (corners - c + np.pi) % (2 * np.pi) - np.pi
+            pad = math.asin(min(1.0, CULL_MARGIN / math.hypot(ddx, ddy)))
+            spans.append((rel(c) + offs.min() - pad, rel(c) + offs.max() + pad))
+        for a0, a1 in spans:
+            d0 = (ang - a0 + np.pi) % (2 * np.pi) - np.pi
+            mask |= (d0 >= 0) & (d0 <= a1 - a0)
+        return mask
+
     def lidar(self, which: list[int] | None = None) -> dict[int, np.ndarray]:
         """Ranges per robot from one ``rayTestBatch`` (noise added, clipped to [0, range])."""
         idx = [self.index[r] for r in (which if which is not None else self.ids)]
-        froms, tos, spans = [], [], []
+        froms, tos, masks = [], [], []
         for i in idx:
             lid = self.sc.robots[i].lidar
-            a = self.yaw[i] + self.beam_angles[i]
+            m = self._beam_mask(i) if self.cull else np.ones(self.beam_angles[i].size, bool)
+            a = self.yaw[i] + self.beam_angles[i][m]
             c, s = np.cos(a), np.sin(a)
             r0 = self.ray_offsets[i]
-            f = np.column_stack([self.x[i] + r0 * c, self.y[i] + r0 * s, np.full(a.size, LIDAR_Z)])
-            t = np.column_stack([self.x[i] + lid.range * c, self.y[i] + lid.range * s, np.full(a.size, LIDAR_Z)])
-            froms.append(f)
-            tos.append(t)
-            spans.append(a.size)
-        if not froms:
-            return {}
-        F = np.concatenate(froms)
-        T = np.concatenate(tos)
-        fracs = np.empty(len(F))
+            z = np.full(a.size, LIDAR_Z)
+            froms.append(np.column_stack([self.x[i] + r0 * c, self.y[i] + r0 * s, z]))
+            tos.append(np.column_stack([self.x[i] + lid.range * c, self.y[i] + lid.range * s, z]))
+            masks.append(m)
+        F = np.concatenate(froms) if froms else np.zeros((0, 3))
+        T = np.concatenate(tos) if tos else np.zeros((0, 3))
+        fracs = np.ones(len(F))
         batch = p.MAX_RAY_INTERSECTION_BATCH_SIZE - 1
         for s0 in range(0, len(F), batch):
-            res = p.rayTestBatch(F[s0:s0 + batch].tolist(), T[s0:s0 + batch].tolist(), physicsClientId=self.cid)
+            res = p.rayTestBatch(F[s0:s0 + batch].tolist(), T[s0:s0 + batch].tolist(), numThreads=1, physicsClientId=self.cid)
             fracs[s0:s0 + len(res)] = [h[2] if h[0] >= 0 else 1.0 for h in res]
+        self.rays_cast += len(F)
         out = {}
         pos = 0
-        for i, n in zip(idx, spans):
+        for i, m in zip(idx, masks):
             lid = self.sc.robots[i].lidar
             r0 = self.ray_offsets[i]
-            ranges = r0 + fracs[pos:pos + n] * (lid.range - r0)
-            ranges[fracs[pos:pos + n] >= 1.0] = lid.range
+            n = int(m.sum())
+            f = np.ones(m.size)
+            f[m] = fracs[pos:pos + n]
+            ranges = np.where(f >= 1.0, lid.range, r0 + f * (lid.range - r0))
             if lid.noise_std > 0:
-                ranges = ranges + self.rng.normal(0.0, lid.noise_std, n)
+                ranges = ranges + self.rng.normal(0.0, lid.noise_std, m.size)
             out[self.ids[i]] = np.clip(ranges, 0.0, lid.range)
             pos += n
         return out

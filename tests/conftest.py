@@ -1,0 +1,68 @@
+"""Shared helpers: small scenarios and running the real command-line tools as processes."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENARIOS = ROOT / "scenarios"
+
+
+def scenario_dict(**over) -> dict:
+    """A short four-robot diamond; followers start off their slots so they must move to them."""
+    d = {
+        "name": "test-diamond",
+        "seed": 3,
+        "dt": 0.1,
+        "duration": 25.0,
+        "world": {"obstacles": [{"type": "cylinder", "x": 6.0, "y": 5.0, "radius": 0.5},
+                                {"type": "box", "x": 6.0, "y": -5.0, "size_x": 1.0, "size_y": 1.0, "yaw_deg": 10},
+                                {"type": "wall", "from": [-6, 8], "to": [14, 8], "thickness": 0.2}]},
+        "robot": {"radius": 0.5, "v_max": 1.0, "w_max": 1.0, "lidar": {"beams": 180, "fov_deg": 180, "range": 5.0, "noise_std": 0.0},
+                  "comm_range": 10.0},
+        "comm": {"loss": 0.0, "latency_ms": 0},
+        "formation": {"leader": 0, "goal": [8.0, 0.0],
+                      "slots": {1: {"L": 3.0, "psi_deg": 135}, 2: {"L": 4.0, "psi_deg": 180}, 3: {"L": 3.0, "psi_deg": -135}}},
+        "robots": [
+            {"id": 0, "role": "leader", "pose": [0.0, 0.0, 0.0]},
+            {"id": 1, "role": "follower", "pose": [-1.0, 3.5, -30.0]},
+            {"id": 2, "role": "follower", "pose": [-5.5, 1.0, 0.0]},
+            {"id": 3, "role": "follower", "pose": [-1.0, -3.5, 30.0]},
+        ],
+        "success": {"goal_tolerance": 0.5, "max_time": 25.0, "no_collisions": True},
+    }
+    for k, v in over.items():
+        d[k] = v
+    return d
+
+
+def write_scenario(path: Path, data: dict) -> Path:
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def run_cli(args: list[str], timeout: float = 180, **kw) -> subprocess.CompletedProcess:
+    """Run a console tool as a real process (``python -m``, so the test does not depend on PATH)."""
+    mod = {"stack-fleet": "stack.fleet", "stack-agent": "stack.agents", "stack-world": "stack.sim_bridge",
+           "stack-router": "stack.comm.router"}[args[0]]
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    return subprocess.run([sys.executable, "-m", mod, *args[1:]], capture_output=True, text=True, timeout=timeout,
+                          cwd=kw.pop("cwd", ROOT), env=env, **kw)
+
+
+def run_fleet(scenario: Path, out: Path, *extra: str, timeout: float = 180) -> tuple[subprocess.CompletedProcess, dict | None]:
+    proc = run_cli(["stack-fleet", "run", str(scenario), "--out", str(out), "--no-progress", *extra], timeout=timeout)
+    rep = out / "report.json"
+    return proc, (json.loads(rep.read_text()) if rep.exists() else None)
+
+
+@pytest.fixture
+def diamond(tmp_path: Path) -> Path:
+    return write_scenario(tmp_path / "diamond.yaml", scenario_dict())

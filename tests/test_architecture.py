@@ -1,0 +1,50 @@
+"""The rooms of ARCHITECTURE.md: which package may import which, checked on the source."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1] / "stack"
+
+FORBIDDEN = {
+    "comm": {"stack.drivers", "stack.agents", "stack.sim_bridge", "stack.policies", "stack.estimation", "stack.fleet", "stack.scenario"},
+    "drivers": {"stack.agents", "stack.sim_bridge", "stack.policies", "stack.estimation", "stack.fleet"},
+    "estimation": {"stack.comm", "stack.drivers", "stack.agents", "stack.sim_bridge", "stack.policies", "stack.fleet", "zenoh"},
+    "policies": {"stack.comm", "stack.drivers", "stack.agents", "stack.sim_bridge", "stack.fleet", "zenoh", "pybullet"},
+    "agents": {"stack.sim_bridge", "stack.fleet", "pybullet"},
+}
+
+
+def _imports(path: Path, package: str) -> set[str]:
+    tree = ast.parse(path.read_text())
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = ("stack." + package).split(".")
+                mod = ".".join(base[: len(base) - node.level + 1] + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            out.add(mod)
+    return out
+
+
+@pytest.mark.parametrize("room", sorted(FORBIDDEN))
+def test_room_imports(room):
+    for path in (ROOT / room).rglob("*.py"):
+        for mod in _imports(path, room):
+            for bad in FORBIDDEN[room]:
+                assert not (mod == bad or mod.startswith(bad + ".")), f"{path.relative_to(ROOT.parent)} imports {mod}"
+
+
+def test_every_zenoh_session_goes_through_the_session_helper():
+    """Only stack/comm/session.py calls zenoh.open: scouting off and explicit endpoints everywhere."""
+    for path in ROOT.rglob("*.py"):
+        if path.name == "session.py":
+            continue
+        assert "zenoh.open(" not in path.read_text(), path

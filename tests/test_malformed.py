@@ -1,0 +1,132 @@
+"""Malformed payloads on every key an agent or the world subscribes to: counted, never a crash.
+
+Real Zenoh sessions (a router session and clients in this process), a real agent and a
+real world server running lock-step in threads while hypothesis throws payloads at them.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import msgpack
+import pytest
+import zenoh
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from conftest import scenario_dict
+from stack.agents.agent import Agent, AgentConfig
+from stack.comm import Keys, MessageError, decode
+from stack.comm.messages import Clock, CmdVel, Imu, Odom, Scan, State
+from stack.comm.session import SessionConfig, free_tcp_endpoint, open_session
+from stack.scenario import parse_scenario
+from stack.sim_bridge.server import WorldConfig, WorldServer
+
+FLEET = "fuzz"
+VALID = {
+    State: {"id": 7, "role": "follower", "seq": 1, "stamp": 0.0, "x": 0.0, "y": 0.0, "yaw": 0.0, "v": 0.0, "w": 0.0},
+    Scan: {"id": 0, "step": 1, "stamp": 0.0, "angle_min": -1.5, "angle_increment": 0.1, "range_max": 5.0, "ranges": [1.0, 2.0]},
+    Odom: {"id": 0, "step": 1, "stamp": 0.0, "v": 0.0, "w": 0.0},
+    Imu: {"id": 0, "step": 1, "stamp": 0.0, "wz": 0.0},
+    Clock: {"step": 1, "t": 0.1, "dt": 0.1},
+    CmdVel: {"id": 0, "step": 1, "stamp": 0.0, "v": 0.0, "w": 0.0},
+}
+KEYS = {State: "7/state", Scan: "0/scan", Odom: "0/odom", Imu: "0/imu", Clock: "world/clock", CmdVel: "0/cmd_vel"}
+
+junk = st.recursive(st.none() | st.booleans() | st.integers(-2**63, 2**64 - 1) | st.floats(allow_nan=True) | st.text(max_size=8),
+                    lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=6), c, max_size=4), max_leaves=8)
+
+
+@st.composite
+def near_valid(draw, kind):
+    d = dict(VALID[kind])
+    field = draw(st.sampled_from(sorted(d)))
+    if draw(st.booleans()):
+        del d[field]
+    else:
+        d[field] = draw(st.sampled_from(["text", None, [1, "x"], {"k": 1}, math.nan, math.inf, -1e400, 2**63, -2**63]) | junk)
+    return msgpack.packb(d)
+
+
+def payloads(kind):
+    return st.binary(max_size=400) | junk.map(lambda j: msgpack.packb(j)) | near_valid(kind)
+
+
+def _invalid_for(kind, payload: bytes) -> bool:
+    try:
+        m = decode(payload, kind)
+    except MessageError:
+        return True
+    return kind is not Clock and getattr(m, "id", None) != (7 if kind is State else 0)
+
+
+@pytest.fixture(scope="module")
+def running_fleet():
+    ep = free_tcp_endpoint()
+    sc = parse_scenario(scenario_dict(robots=[{"id": 0, "role": "leader", "pose": [0, 0, 0]}],
+                                      formation={"leader": 0, "goal": [500.0, 0.0], "slots": {}}, duration=100000.0), "fuzz.yaml")
+    with open_session(SessionConfig(mode="router", listen=[ep])), \
+            open_session(SessionConfig(connect=[ep])) as s_agent, \
+            open_session(SessionConfig(connect=[ep])) as s_world, \
+            open_session(SessionConfig(connect=[ep])) as s_fuzz:
+        acfg = AgentConfig(robot_id=0, scenario=sc, connect=ep, fleet=FLEET, lockstep=True)
+        agent = Agent(acfg, s_agent)
+        wcfg = WorldConfig(scenario=sc, connect=ep, fleet=FLEET, lockstep_timeout_s=5.0, stop_early=False)
+        world = WorldServer(wcfg, s_world)
+        errors = []
+
+        def guard(fn):
+            def run():
+                try:
+                    fn()
+                except BaseException as e:  # noqa: BLE001 - the test reports it
+                    errors.append(e)
+            return run
+
+        ta = threading.Thread(target=guard(agent.run), daemon=True)
+        tw = threading.Thread(target=guard(world.run), daemon=True)
+        ta.start()
+        tw.start()
+        deadline = time.monotonic() + 20
+        while agent.step < 5 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert agent.step >= 5, errors
+        yield agent, world, s_fuzz, errors
+        acfg.stop.set()
+        wcfg.stop.set()
+        ta.join(10)
+        tw.join(15)
+
+
+sent = {"agent": 0, "world": 0}
+
+
+@settings(max_examples=120, deadline=None, suppress_health_check=list(HealthCheck))
+@given(data=st.data())
+def test_malformed_payloads_are_counted(running_fleet, data):
+    agent, world, s, errors = running_fleet
+    for kind, key in KEYS.items():
+        payload = data.draw(payloads(kind), label=kind.__name__)
+        if not _invalid_for(kind, payload):
+            continue
+        s.put(f"stack/{FLEET}/{key}", payload, congestion_control=zenoh.CongestionControl.BLOCK)
+        sent["world" if kind is CmdVel else "agent"] += 1
+
+
+def test_counts_add_up_and_nobody_crashed(running_fleet):
+    agent, world, s, errors = running_fleet
+    assert sent["agent"] > 100 and sent["world"] > 20
+    step0 = agent.step
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        if sum(agent.malformed.values()) == sent["agent"] and world.malformed == sent["world"]:
+            break
+        time.sleep(0.05)
+    assert sum(agent.malformed.values()) == sent["agent"], (agent.malformed, sent)
+    assert world.malformed == sent["world"]
+    assert set(agent.malformed) <= {"state", "scan", "odom", "imu", "clock"}
+    time.sleep(0.5)
+    assert agent.step > step0  # still stepping
+    assert not errors

@@ -1,0 +1,99 @@
+"""Scenario validation: every shipped scenario loads; bad input gives exit 2 and one line naming the field."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+
+from conftest import SCENARIOS, run_cli, scenario_dict, write_scenario
+from stack.scenario import ScenarioError, load_scenario, parse_scenario, with_overrides
+
+
+@pytest.mark.parametrize("path", sorted(SCENARIOS.glob("*.yaml")), ids=lambda p: p.stem)
+def test_shipped_scenarios_load(path):
+    sc = load_scenario(path)
+    assert sc.robots and sc.dt > 0
+    if sc.formation:
+        assert set(sc.formation.slots) == {r.id for r in sc.robots} - {sc.formation.leader}
+
+
+def _bad(mutate):
+    d = scenario_dict()
+    mutate(d)
+    return d
+
+
+BAD = [
+    (lambda d: d["robots"][2].__setitem__("pose", [1.0, 2.0]), "robots[2].pose: expected 3 numbers, got 2"),
+    (lambda d: d.__setitem__("dt", -0.1), "dt: must be > 0"),
+    (lambda d: d.__setitem__("speed", 3), "speed: unknown field"),
+    (lambda d: d["robot"].__setitem__("radius", "big"), "robot.radius: expected a number, got text ('big')"),
+    (lambda d: d["robot"]["lidar"].__setitem__("beams", 0), "robot.lidar.beams: must be >= 1"),
+    (lambda d: d["robot"]["lidar"].__setitem__("fov", 180), "robot.lidar.fov: unknown field"),
+    (lambda d: d["comm"].__setitem__("loss", 1.5), "comm.loss: must be <= 1"),
+    (lambda d: d["comm"].__setitem__("burst", {"p_good_bad": 0.1}), "comm.burst.p_bad_good: missing"),
+    (lambda d: d["world"]["obstacles"].append({"type": "sphere", "x": 1}), "world.obstacles[3].type: expected one of cylinder, box, wall"),
+    (lambda d: d["world"]["obstacles"][0].pop("radius"), "world.obstacles[0].radius: missing"),
+    (lambda d: d["formation"]["slots"].pop(2), "formation.slots: follower 2 has no slot"),
+    (lambda d: d["formation"].__setitem__("leader", 9), "formation.leader: no robot with id 9"),
+    (lambda d: d["robots"][1].__setitem__("policy", "magic"), "robots[1].policy: expected one of pid, drl"),
+    (lambda d: d["robots"][1].__setitem__("driver", "ros"), "robots[1].driver: expected one of sim, can"),
+    (lambda d: d["robots"][3].__setitem__("id", 1), "robots[3].id: duplicate id 1"),
+    (lambda d: d["robots"][0].__setitem__("role", "follower"), "robots[0].role: robot 0 is follower but formation.leader is 0"),
+    (lambda d: d.__setitem__("robots", []), "robots: expected a non-empty list"),
+    (lambda d: d.pop("formation"), "formation: missing"),
+    (lambda d: d["success"].__setitem__("no_collisions", "yes"), "success.no_collisions: expected true or false"),
+]
+
+
+@pytest.mark.parametrize("mutate,message", BAD, ids=[m for _, m in BAD])
+def test_bad_field_named(mutate, message):
+    with pytest.raises(ScenarioError) as e:
+        parse_scenario(_bad(mutate), "s.yaml")
+    assert str(e.value).startswith(f"s.yaml: {message}"), str(e.value)
+    assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("mutate,message", BAD[:3], ids=[m for _, m in BAD[:3]])
+def test_bad_scenario_file_exits_2_with_one_line(tmp_path, mutate, message):
+    path = write_scenario(tmp_path / "bad.yaml", _bad(mutate))
+    proc = run_cli(["stack-fleet", "run", str(path), "--out", str(tmp_path / "out")], timeout=60)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"bad.yaml: {message}" in lines[0], proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_unparseable_yaml_and_missing_file(tmp_path):
+    p = tmp_path / "broken.yaml"
+    p.write_text("dt: [0.1\nrobots: {")
+    proc = run_cli(["stack-fleet", "run", str(p)], timeout=60)
+    assert proc.returncode == 2 and "broken.yaml: line" in proc.stderr and "Traceback" not in proc.stderr
+    proc = run_cli(["stack-fleet", "run", str(tmp_path / "nope.yaml")], timeout=60)
+    assert proc.returncode == 2 and "nope.yaml: cannot read" in proc.stderr
+
+
+@pytest.mark.parametrize("flags,message", [
+    (["--loss", "2"], "--loss: expected a probability in [0, 1], got '2'"),
+    (["--kill", "two@3"], "--kill: expected ID@SECONDS"),
+    (["--kill", "9@3"], "--kill 9@3: no robot with id 9"),
+    (["--policy", "nonsense"], "--policy: invalid choice"),
+    (["--listen", "tcp/10.0.0.1:7447"], "not a loopback address"),
+    (["--duration", "0"], "--duration: expected a number > 0"),
+])
+def test_bad_flags_exit_2(diamond, flags, message):
+    proc = run_cli(["stack-fleet", "run", str(diamond), *flags], timeout=60)
+    assert proc.returncode == 2, proc.stderr
+    assert message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+
+
+def test_overrides_apply_and_revalidate():
+    sc = parse_scenario(scenario_dict(), "s.yaml")
+    o = with_overrides(sc, loss=0.3, latency_ms=50, seed=9, duration=5)
+    assert (o.comm.loss, o.comm.latency_ms, o.seed, o.duration) == (0.3, 50, 9, 5)
+    with pytest.raises(ScenarioError, match="comm.loss: must be <= 1"):
+        with_overrides(sc, loss=3.0)
+    assert sc.comm.loss == 0.0  # the original is untouched
+    raw = copy.deepcopy(sc.raw)
+    assert raw == scenario_dict()
