@@ -34,6 +34,7 @@ from .timing import LatencyHistogram
 log = logging.getLogger("stack.agent")
 
 STALE_AFTER_S = 3.0  # a neighbour not heard for this long is left out of the formation logic
+SENSOR_STALE_S = 0.5  # real time: no new scan and odometry for this long -> zero velocity
 
 
 @dataclass
@@ -87,6 +88,7 @@ class Agent:
         self.state_latency = LatencyHistogram()
         self.fault = ""
         self._odo_step = -1
+        self.sensor_stale = 0
 
         x, y, yaw = self.robot.pose
         self.estimator = OdometryIntegrator(x, y, yaw)
@@ -202,8 +204,6 @@ class Agent:
             s.declare_subscriber(k.world("clock"), self._on_clock),
             s.liveliness().declare_subscriber(k.all_alive, self._on_alive, history=True),
         ]
-        # malformed traffic on our other inputs is counted too
-        subs += [s.declare_subscriber(k.robot(self.id, t), self._check_only) for t in ("diag",)]
         token = None
         try:
             with self.driver:
@@ -222,38 +222,28 @@ class Agent:
                 sub.undeclare()
         return 0
 
-    def _check_only(self, sample: zenoh.Sample) -> None:
-        pass  # our own diag comes back to us; others' keys are not ours to judge
-
     def _loop(self) -> None:
         stop = self.cfg.stop
-        period = self.dt
-        next_tick = time.monotonic()
         steps = 0
         while not stop.is_set():
-            if self.cfg.lockstep:
-                got = self._wait_lockstep()
-                if got is None:
-                    continue
-            else:
-                next_tick += period
-                delay = next_tick - time.monotonic()
-                if delay > 0:
-                    if stop.wait(delay):
-                        break
-                else:
-                    next_tick = time.monotonic()  # overran: do not try to catch up
-                with self._cv:
-                    if self._scan is None or self.driver.read() is None:
-                        continue
+            k = self._wait_sensors()
+            if k is None:
+                continue
             self._control_step()
             steps += 1
             if self.cfg.steps is not None and steps >= self.cfg.steps:
                 break
 
-    def _wait_lockstep(self) -> int | None:
-        """Block until step k's odometry and scan are in, and the neighbours' step k-1 states."""
-        deadline = time.monotonic() + self.cfg.sensor_timeout_s
+    def _wait_sensors(self) -> int | None:
+        """Block until a new step's odometry and scan are in (the sensors set the loop's period).
+
+        Lock-step: also wait (bounded) for the states that the robots which commanded step k-1
+        sent before their command, so every agent sees the same messages. Real time: sensors
+        older than ``SENSOR_STALE_S`` stop the robot (zero) until they come back.
+        """
+        lockstep = self.cfg.lockstep
+        limit = self.cfg.sensor_timeout_s if lockstep else SENSOR_STALE_S
+        deadline = time.monotonic() + limit
         with self._cv:
             while True:
                 if self.cfg.stop.is_set():
@@ -262,19 +252,25 @@ class Agent:
                 if scan is not None and odo is not None and scan.step > self.step and odo.step == scan.step:
                     break
                 if time.monotonic() > deadline:
-                    raise TimeoutError(f"agent {self.id}: no sensor data from the world for {self.cfg.sensor_timeout_s:.0f} s")
+                    if lockstep:
+                        raise TimeoutError(f"agent {self.id}: no sensor data from the world for {limit:.0f} s")
+                    if self.driver.last_sent != (0.0, 0.0):
+                        log.warning("agent %d: sensors stale for %.1f s: zero velocity", self.id, limit)
+                        self.driver.stop()
+                        self.sensor_stale += 1
+                    return None
                 self._cv.wait(0.05)
             k = scan.step
             clock = self._clock
-            # the robots that commanded step k-1 had sent their state k-1 before: wait for it (bounded)
-            if clock is not None and clock.step == k:
+            if lockstep and clock is not None and clock.step == k:
                 want = [i for i in clock.answered if i != self.id and i not in self._dead]
                 t_end = time.monotonic() + 1.0
                 while any(self._states_seen.get(i, -1) < k - 1 for i in want) and time.monotonic() < t_end:
                     if self.cfg.stop.is_set():
                         return None
                     self._cv.wait(0.02)
-            self.sim_now = max(self.sim_now, scan.stamp)
+            if lockstep:
+                self.sim_now = max(self.sim_now, scan.stamp)
             return k
 
     def _control_step(self) -> None:

@@ -30,6 +30,7 @@ from .report import build_report
 log = logging.getLogger("stack.fleet")
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_CRASH = 0, 1, 2, 3
+ZENOH_RUNTIME = "(app: (worker_threads: 1), tx: (handover: app), rx: (handover: app), acc: (handover: app), net: (handover: app))"
 
 
 @dataclass
@@ -187,6 +188,8 @@ def run_fleet(cfg: FleetConfig) -> tuple[int, dict]:
     keys = Keys(fleet)
     endpoint = cfg.listen or free_tcp_endpoint()
     env = dict(os.environ, PYTHONUNBUFFERED="1")
+    # many small processes on few cores: one zenoh worker thread each (fleet_bench: +15 % steps/s at 32 robots)
+    env.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME)
     py = sys.executable
     procs: dict[str, _Proc] = {}
     faults: list[dict] = []
