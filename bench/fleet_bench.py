@@ -24,7 +24,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from stack.fleet.orchestrator import FleetConfig, run_fleet  # noqa: E402
+from stack.fleet.orchestrator import FleetConfig, run_fleet, sigterm_as_interrupt  # noqa: E402
 from stack.scenario import parse_scenario  # noqa: E402
 
 
@@ -88,6 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-peer", action="store_true", help="skip IR-SIM")
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "fleet-bench")
     a = ap.parse_args(argv)
+    sigterm_as_interrupt()
     a.out.mkdir(parents=True, exist_ok=True)
     sys.path.insert(0, str(Path(__file__).parent))
     rows = []

@@ -148,6 +148,14 @@ class SuccessConfig:
 
 
 @dataclass(frozen=True)
+class BenchConfig:
+    """What ``stack-fleet bench`` does with this scenario (an addition to the contract's format)."""
+
+    policies: tuple[str, ...] = POLICIES  # the policies this scenario is meant for
+    reference: str = ""  # the paper's figure this scenario reproduces, as text for the table
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str
     seed: int
@@ -159,6 +167,7 @@ class Scenario:
     formation: FormationConfig | None
     coordination: str | None
     success: SuccessConfig
+    bench: BenchConfig = field(default_factory=BenchConfig)
     source: str = "<scenario>"
     raw: dict = field(default_factory=dict, compare=False, repr=False)
 
@@ -343,7 +352,7 @@ def _obstacle(rd: _Reader, d: Any, path: str) -> Obstacle:
     return Obstacle("wall", start=a, end=b, thickness=rd.number(d.get("thickness", 0.2), f"{path}.thickness", 0.0, lo_open=True))
 
 
-_TOP_KEYS = {"name", "seed", "dt", "duration", "world", "robot", "comm", "formation", "robots", "success", "coordination"}
+_TOP_KEYS = {"name", "seed", "dt", "duration", "world", "robot", "comm", "formation", "robots", "success", "coordination", "bench"}
 
 
 def parse_scenario(data: Any, source: str = "<scenario>") -> Scenario:
@@ -468,8 +477,16 @@ def parse_scenario(data: Any, source: str = "<scenario>") -> Scenario:
         max_time=rd.number(s["max_time"], "success.max_time", 0.0, lo_open=True) if "max_time" in s else None,
         no_collisions=rd.boolean(s.get("no_collisions", True), "success.no_collisions"),
     )
+    bench = BenchConfig()
+    if d.get("bench") is not None:
+        b = rd.mapping(d["bench"], "bench", {"policies", "reference"})
+        pols = b.get("policies", list(POLICIES))
+        if not isinstance(pols, list) or not pols:
+            raise rd.fail("bench.policies", f"expected a non-empty list, got {_kind(pols)}")
+        bench = BenchConfig(policies=tuple(rd.choice(x, f"bench.policies[{i}]", POLICIES) for i, x in enumerate(pols)),
+                            reference=str(b.get("reference", "")))
     return Scenario(name=name, seed=seed, dt=dt, duration=duration, obstacles=obstacles, robots=tuple(robots),
-                    comm=comm, formation=formation, coordination=coordination, success=success,
+                    comm=comm, formation=formation, coordination=coordination, success=success, bench=bench,
                     source=source, raw=data)
 
 

@@ -97,3 +97,21 @@ def test_kill_is_a_fault_the_fleet_rides_through(tmp_path, diamond):
     j = list(z["ids"]).index(3)
     assert abs(z["v"][-1, j]) < 1e-6
     assert rep["leader_time_to_goal_s"] is not None
+
+
+def test_bench_runs_each_scenario_with_its_policies(tmp_path):
+    from conftest import run_cli
+
+    folder = tmp_path / "scenarios"
+    folder.mkdir()
+    d = scenario_dict(duration=6.0)
+    d["bench"] = {"policies": ["pid", "drl"], "reference": "Bai 2022 Fig. 9b"}
+    write_scenario(folder / "short.yaml", d)
+    proc = run_cli(["stack-fleet", "bench", "--scenarios", str(folder), "--out", str(tmp_path / "bench")], timeout=300)
+    assert proc.returncode in (0, 1), proc.stderr
+    table = (tmp_path / "bench" / "bench.md").read_text()
+    assert "| test-diamond | pid |" in table and "Bai 2022 Fig. 9b" in table
+    data = json.loads((tmp_path / "bench" / "bench.json").read_text())
+    assert [r["policy"] for r in data["runs"]] == ["pid"]
+    assert data["skipped"] == [["test-diamond", "drl"]]
+    assert json.loads((tmp_path / "bench" / "test-diamond-pid" / "report.json").read_text())["policies"]["0"] == "pid"

@@ -5,14 +5,13 @@ from __future__ import annotations
 import argparse
 import logging
 import re
-import signal
 import sys
 from pathlib import Path
 
 from ..comm.session import EndpointError, check_endpoint
 from ..policies import available as available_policies
 from ..scenario import DRIVERS, POLICIES, ScenarioError, load_scenario, with_overrides
-from .orchestrator import EXIT_BAD_INPUT, FleetConfig, run_fleet
+from .orchestrator import EXIT_BAD_INPUT, FleetConfig, run_fleet, sigterm_as_interrupt
 
 
 class _Parser(argparse.ArgumentParser):
@@ -107,17 +106,19 @@ def cli(argv: list[str] | None = None) -> int:
     if a.cmd == "bench":
         from .bench import main as bench_main
 
-        return bench_main(a.scenarios, a.out, seed=a.seed)
+        sigterm_as_interrupt()
+        try:
+            return bench_main(a.scenarios, a.out, seed=a.seed)
+        except KeyboardInterrupt:
+            print("stack-fleet: interrupted; every process was stopped", file=sys.stderr)
+            return 130
     logging.basicConfig(level=a.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         cfg = run_config(a)
     except (ScenarioError, EndpointError) as e:
         print(f"stack-fleet: {e}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    def on_term(signum, _frame):
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGTERM, on_term)  # tear the fleet down in order, as on Ctrl-C
+    sigterm_as_interrupt()
     try:
         code, report = run_fleet(cfg)
     except KeyboardInterrupt:

@@ -59,6 +59,14 @@ class FleetConfig:
     """Write trajectories.png and distances.png."""
 
 
+def sigterm_as_interrupt() -> None:
+    """SIGTERM tears a fleet down in order (agents' zero commands first), exactly like Ctrl-C."""
+    def on_term(signum, _frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, on_term)
+
+
 class _Proc:
     def __init__(self, name: str, argv: list[str], log_path: Path, env: dict):
         self.name = name
