@@ -53,6 +53,8 @@ def run_cli(args: list[str], timeout: float = 180, **kw) -> subprocess.Completed
     mod = {"stack-fleet": "stack.fleet", "stack-agent": "stack.agents", "stack-world": "stack.sim_bridge",
            "stack-router": "stack.comm.router"}[args[0]]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
+    for name in kw.pop("unset", ()):
+        env.pop(name, None)
     return subprocess.run([sys.executable, "-m", mod, *args[1:]], capture_output=True, text=True, timeout=timeout,
                           cwd=kw.pop("cwd", ROOT), env=env, **kw)
 

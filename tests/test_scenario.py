@@ -88,6 +88,11 @@ def test_bad_flags_exit_2(diamond, flags, message):
     assert message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
 
 
+def test_gui_without_display_is_bad_input(diamond):
+    proc = run_cli(["stack-fleet", "run", str(diamond), "--gui"], timeout=60, unset=("DISPLAY", "WAYLAND_DISPLAY"))
+    assert proc.returncode == 2 and "--gui: no display" in proc.stderr, proc.stderr
+
+
 def test_overrides_apply_and_revalidate():
     sc = parse_scenario(scenario_dict(), "s.yaml")
     o = with_overrides(sc, loss=0.3, latency_ms=50, seed=9, duration=5)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import re
 import sys
 from pathlib import Path
@@ -96,6 +97,8 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
             raise ScenarioError(f"--kill {rid}@{t:g}: no robot with id {rid} in {a.scenario}")
     if a.listen:
         check_endpoint(a.listen)
+    if a.gui and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise ScenarioError("--gui: no display (DISPLAY is not set); run without --gui, or under a desktop or Xvfb")
     out = a.out or Path("runs") / sc.name
     return FleetConfig(scenario=sc, out=out, realtime=a.realtime, gui=a.gui, listen=a.listen, kills=a.kill,
                        progress=not a.no_progress, plots=not a.no_plots)
