@@ -23,12 +23,12 @@ def layer(rid, role, centre=True):
 
 def test_leader_situations():
     d = layer(0, "leader")
-    far = d.decide(Pose(0, 0, 0), 0.0, {1: nb(1, -5, 0)}, np.zeros((1, 0)), (0, 0, 5), d_omin=math.inf)
+    far = d.decide(Pose(0, 0, 0), 0.0, {1: nb(1, -5, 0)}, np.zeros((1, 0)), d_omin=math.inf)
     assert far.situation == "leader-1" and not far.use_network
-    near = d.decide(Pose(0, 0, 0), 0.0, {1: nb(1, -2, 0)}, np.zeros((1, 0)), (0, 0, 5), d_omin=math.inf)
+    near = d.decide(Pose(0, 0, 0), 0.0, {1: nb(1, -2, 0)}, np.zeros((1, 0)), d_omin=math.inf)
     assert near.situation == "leader-2" and near.use_network
     # close to the goal: d_g < min(d_rmin, d_omin) -> PID even with a robot within d_safe
-    home = d.decide(Pose(29.5, 0, 0), 0.0, {1: nb(1, 27.5, 0)}, np.zeros((1, 0)), (0, 0, 5), d_omin=math.inf)
+    home = d.decide(Pose(29.5, 0, 0), 0.0, {1: nb(1, 27.5, 0)}, np.zeros((1, 0)), d_omin=math.inf)
     assert home.situation == "leader-1"
     assert d.counts["leader-1"] == 2 and d.counts["leader-2"] == 1
 
@@ -41,23 +41,23 @@ def test_leader_speed_rule_eq20():
 def test_follower_situations_and_eq3_target():
     d = layer(1, "follower")
     leader = nb(0, 10, 0, role="leader")
-    s1 = d.decide(Pose(5, 0, 0), 0.0, {0: leader}, np.zeros((1, 0)), (0, 0, 5), d_omin=math.inf)
+    s1 = d.decide(Pose(5, 0, 0), 0.0, {0: leader}, np.zeros((1, 0)), d_omin=math.inf)
     assert s1.situation == "follower-1" and np.allclose(s1.target, (7.0, 0.0))  # eq. (3): 10 + 3 cos(180 deg)
-    s2 = d.decide(Pose(8, 0, 0), 0.0, {0: leader}, np.zeros((1, 0)), (0, 0, 5), d_omin=math.inf)
+    s2 = d.decide(Pose(8, 0, 0), 0.0, {0: leader}, np.zeros((1, 0)), d_omin=math.inf)
     assert s2.situation == "follower-2" and s2.use_network
-    s3 = d.decide(Pose(5, 0, 0), 0.0, {0: leader, 2: nb(2, 6, 4)}, np.zeros((1, 0)), (0, 0, 5), d_omin=1.0)
+    s3 = d.decide(Pose(5, 0, 0), 0.0, {0: leader, 2: nb(2, 6, 4)}, np.zeros((1, 0)), d_omin=1.0)
     assert s3.situation == "follower-3"
     # eq. (21)-(22): robots ahead (toward the leader) are selected, alpha_g points at their centre (8, 2)
     assert math.isclose(s3.obs.alpha_g, math.atan2(2, 3), abs_tol=1e-9)
     assert math.isclose(s3.obs.d_g, 2.0)
     # a policy without avoidance keeps the slot bearing
-    s3_pid = layer(1, "follower", centre=False).decide(Pose(5, 0, 0), 0.0, {0: leader, 2: nb(2, 6, 4)}, np.zeros((1, 0)), (0, 0, 5), 1.0)
+    s3_pid = layer(1, "follower", centre=False).decide(Pose(5, 0, 0), 0.0, {0: leader, 2: nb(2, 6, 4)}, np.zeros((1, 0)), 1.0)
     assert s3_pid.situation == "follower-3" and abs(s3_pid.obs.alpha_g) < 1e-12
 
 
 def test_follower_without_leader_waits():
     d = layer(1, "follower")
-    w = d.decide(Pose(0, 0, 0), 0.0, {}, np.zeros((1, 0)), (0, 0, 5), d_omin=math.inf)
+    w = d.decide(Pose(0, 0, 0), 0.0, {}, np.zeros((1, 0)), d_omin=math.inf)
     assert w.situation == "waiting" and w.obs is None
 
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import zenoh
 
-from ..comm import Keys, MessageError, RadioModel, decode, encode
+from ..comm import Keys, MessageError, RadioModel, decode, encode, receive
 from ..comm.messages import Clock, Diag, Scan, State
 from ..comm.radio import config_from_scenario
 from ..drivers import Driver, DriverLimits, make_driver
@@ -119,8 +119,7 @@ class Agent:
         params = self.robot.driver_params.get(driver_name, {})
         self.driver: Driver = make_driver(driver_name, self.id, limits, session=session, keys=self.keys,
                                           stamp=self._stamp, on_malformed=self._count_malformed,
-                                          on_odom=self._on_odom, **params)
-        self.driver._clock = clock
+                                          on_odom=self._on_odom, clock=clock, **params)
 
     # --- time ----------------------------------------------------------------------
     def _stamp(self) -> float:
@@ -151,10 +150,8 @@ class Agent:
             self._cv.notify_all()
 
     def _on_clock(self, sample: zenoh.Sample) -> None:
-        try:
-            m = decode(sample.payload.to_bytes(), Clock)
-        except MessageError:
-            self._count_malformed(str(sample.key_expr))
+        m = receive(sample, Clock, self._count_malformed)
+        if m is None:
             return
         with self._cv:
             self._clock = m
@@ -316,7 +313,7 @@ class Agent:
         d_omin = obstacle_distance((pose.x, pose.y), pose.yaw, ranges, scan.angle_min, scan.angle_increment,
                                    scan.range_max, [n.predicted(now) for n in self.neighbours.values()],
                                    self.robot.radius)
-        dec = self.decision.decide(pose, now, self.neighbours, scans, (scan.angle_min, scan.angle_increment, scan.range_max), d_omin)
+        dec = self.decision.decide(pose, now, self.neighbours, scans, d_omin)
         if dec.obs is None:
             v, w = 0.0, 0.0
         else:

@@ -94,8 +94,7 @@ class DecisionLayer:
         self.centre_heading = centre_heading
         self.counts: dict[str, int] = {s: 0 for s in SITUATIONS}
 
-    def decide(self, pose, now: float, neighbours: dict[int, Neighbour], scans: np.ndarray,
-               scan_geom: tuple[float, float, float], d_omin: float) -> Decision:
+    def decide(self, pose, now: float, neighbours: dict[int, Neighbour], scans: np.ndarray, d_omin: float) -> Decision:
         me = (pose.x, pose.y)
         others = [n.predicted(now) for n in neighbours.values()]
         dists = [math.hypot(o[0] - me[0], o[1] - me[1]) for o in others]

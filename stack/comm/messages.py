@@ -163,3 +163,13 @@ def decode(payload: bytes, kind: type[msgspec.Struct]):
         raise MessageError(f"{kind.__name__}: {e}") from None
     except (ValueError, TypeError, OverflowError, RecursionError) as e:  # defensive: any decoder fault is a drop
         raise MessageError(f"{kind.__name__}: {e}") from None
+
+
+def receive(sample, kind: type[msgspec.Struct], on_malformed=None):
+    """Decode a zenoh sample's payload as ``kind``; on failure call ``on_malformed(key)`` and return None."""
+    try:
+        return decode(sample.payload.to_bytes(), kind)
+    except MessageError:
+        if on_malformed is not None:
+            on_malformed(str(sample.key_expr))
+        return None

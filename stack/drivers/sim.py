@@ -13,7 +13,7 @@ from typing import Callable
 
 import zenoh
 
-from ..comm import Keys, MessageError, decode, encode
+from ..comm import Keys, encode, receive
 from ..comm.messages import CmdVel, Imu, Odom
 from .base import Driver, DriverLimits, Odometry
 
@@ -23,8 +23,9 @@ class SimDriver(Driver):
 
     def __init__(self, robot_id: int, limits: DriverLimits, *, session: zenoh.Session, keys: Keys,
                  stamp: Callable[[], float] = time.time, on_malformed: Callable[[str], None] | None = None,
-                 on_odom: Callable[[Odometry], None] | None = None, **params):
-        super().__init__(robot_id, limits)
+                 on_odom: Callable[[Odometry], None] | None = None, clock: Callable[[], float] = time.monotonic,
+                 **params):
+        super().__init__(robot_id, limits, clock)
         if params:
             raise ValueError(f"sim driver: unknown settings {', '.join(sorted(params))}")
         self._session = session
@@ -47,25 +48,28 @@ class SimDriver(Driver):
         ]
 
     def _imu_cb(self, sample: zenoh.Sample) -> None:
-        try:
-            m = decode(sample.payload.to_bytes(), Imu)
-        except MessageError:
-            self._on_malformed(str(sample.key_expr))
+        m = receive(sample, Imu, self._on_malformed)
+        if m is None or not self._mine(m, sample):
             return
         with self._data_lock:
             self._wz = (m.step, m.wz)
 
     def _odom_cb(self, sample: zenoh.Sample) -> None:
-        try:
-            m = decode(sample.payload.to_bytes(), Odom)
-        except MessageError:
-            self._on_malformed(str(sample.key_expr))
+        m = receive(sample, Odom, self._on_malformed)
+        if m is None or not self._mine(m, sample):
             return
         with self._data_lock:
             wz = self._wz[1] if self._wz is not None and self._wz[0] == m.step else None
             odo = self._latest = Odometry(v=m.v, w=m.w, stamp=m.stamp, step=m.step, wz_imu=wz)
         if self._on_odom is not None:
             self._on_odom(odo)
+
+    def _mine(self, m, sample: zenoh.Sample) -> bool:
+        """A message on our key that names another robot is malformed."""
+        if m.id == self.robot_id:
+            return True
+        self._on_malformed(str(sample.key_expr))
+        return False
 
     def _send(self, v: float, w: float) -> None:
         self._send_step(v, w, -1)

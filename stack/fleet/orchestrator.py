@@ -21,7 +21,7 @@ from pathlib import Path
 
 import zenoh
 
-from ..comm import Keys, MessageError, decode
+from ..comm import Keys, receive
 from ..comm.messages import Clock, Diag, State, WorldStatus
 from ..comm.session import SessionConfig, free_tcp_endpoint, open_session
 from ..scenario import Scenario
@@ -137,48 +137,41 @@ class Monitor:
         self.diag: dict[int, Diag] = {}
         self.estimates: dict[int, list[tuple[int, float, float]]] = {}
         self.situation: dict[int, str] = {}
+        self.malformed = 0
         self._subs = [
-            session.declare_subscriber(keys.world("clock"), self._clock),
-            session.declare_subscriber(keys.world("status"), self._status),
-            session.declare_subscriber(keys.all_robots("diag"), self._diag),
-            session.declare_subscriber(keys.all_robots("state"), self._state),
+            session.declare_subscriber(keys.world("clock"), self._on(Clock, self._clock)),
+            session.declare_subscriber(keys.world("status"), self._on(WorldStatus, self._status)),
+            session.declare_subscriber(keys.all_robots("diag"), self._on(Diag, self._diag)),
+            session.declare_subscriber(keys.all_robots("state"), self._on(State, self._state)),
         ]
 
-    def _clock(self, s: zenoh.Sample) -> None:
-        try:
-            m = decode(s.payload.to_bytes(), Clock)
-        except MessageError:
-            return
-        with self.lock:
-            self.t, self.step = m.t, m.step
+    def _on(self, kind, handler):
+        def callback(sample: zenoh.Sample) -> None:
+            m = receive(sample, kind, self._bad)
+            if m is not None:
+                with self.lock:
+                    handler(m)
+        return callback
 
-    def _status(self, s: zenoh.Sample) -> None:
-        try:
-            m = decode(s.payload.to_bytes(), WorldStatus)
-        except MessageError:
-            return
+    def _bad(self, _key: str) -> None:
         with self.lock:
-            self.status, self.why = m.state, m.why
+            self.malformed += 1
 
-    def _diag(self, s: zenoh.Sample) -> None:
-        try:
-            m = decode(s.payload.to_bytes(), Diag)
-        except MessageError:
-            return
-        with self.lock:
-            old = self.diag.get(m.id)
-            if old is None or m.step >= old.step or m.state == "stopped":
-                self.diag[m.id] = m
+    def _clock(self, m: Clock) -> None:
+        self.t, self.step = m.t, m.step
 
-    def _state(self, s: zenoh.Sample) -> None:
-        try:
-            m = decode(s.payload.to_bytes(), State)
-        except MessageError:
-            return
-        with self.lock:
-            self.estimates.setdefault(m.id, []).append((m.step, m.x, m.y))
-            if m.situation:
-                self.situation[m.id] = m.situation
+    def _status(self, m: WorldStatus) -> None:
+        self.status, self.why = m.state, m.why
+
+    def _diag(self, m: Diag) -> None:
+        old = self.diag.get(m.id)
+        if old is None or m.step >= old.step or m.state == "stopped":
+            self.diag[m.id] = m
+
+    def _state(self, m: State) -> None:
+        self.estimates.setdefault(m.id, []).append((m.step, m.x, m.y))
+        if m.situation:
+            self.situation[m.id] = m.situation
 
     def close(self) -> None:
         for sub in self._subs:
