@@ -99,6 +99,7 @@ class RobotConfig:
     lidar: LidarConfig = field(default_factory=LidarConfig)
     odom_noise: tuple[float, float] = (0.0, 0.0)  # v_std, w_std
     imu_noise: float = 0.0  # yaw-rate std [rad/s]
+    fix: tuple[float, float] | None = None  # absolute position fixes (rate_hz, std [m]): GNSS / mocap stand-in
     comm_range: float = 10.0
     cmd_timeout: float = 0.5  # driver watchdog: stale command -> zero [s]
     base: BaseConfig = field(default_factory=BaseConfig)
@@ -258,7 +259,7 @@ def _kind(value: Any) -> str:
     return type(value).__name__
 
 
-_ROBOT_KEYS = {"radius", "v_max", "w_max", "lidar", "odom_noise", "imu_noise", "comm_range", "cmd_timeout", "base", "pid", "policy", "driver"} | set(DRIVERS)
+_ROBOT_KEYS = {"radius", "v_max", "w_max", "lidar", "odom_noise", "imu_noise", "fix", "comm_range", "cmd_timeout", "base", "pid", "policy", "driver"} | set(DRIVERS)
 
 
 def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict[str, Any]:
@@ -277,6 +278,16 @@ def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict
     if "imu_noise" in d:
         m = rd.mapping(d["imu_noise"], f"{path}.imu_noise", {"w_std"})
         out["imu_noise"] = rd.number(m.get("w_std", 0.0), f"{path}.imu_noise.w_std", 0.0)
+    if "fix" in d:
+        if d["fix"] is None:
+            out["fix"] = None
+        else:
+            m = rd.mapping(d["fix"], f"{path}.fix", {"rate_hz", "std"})
+            for k in ("rate_hz", "std"):
+                if k not in m:
+                    raise rd.fail(f"{path}.fix.{k}", "missing")
+            out["fix"] = (rd.number(m["rate_hz"], f"{path}.fix.rate_hz", 0.0, 1000.0, lo_open=True),
+                          rd.number(m["std"], f"{path}.fix.std", 0.0, 100.0, lo_open=True))
     if "odom_noise" in d:
         m = rd.mapping(d["odom_noise"], f"{path}.odom_noise", {"v_std", "w_std"})
         prev = out.get("odom_noise", (0.0, 0.0))
@@ -544,6 +555,11 @@ def _deepcopy(x: Any) -> Any:
     if isinstance(x, list):
         return [_deepcopy(v) for v in x]
     return x
+
+
+def fix_due(robot: RobotConfig, step: int, dt: float) -> bool:
+    """Whether the robot's (simulated) position fix is sent at this step: every round(1 / (rate dt)) steps."""
+    return robot.fix is not None and step % max(1, round(1.0 / (robot.fix[0] * dt))) == 0
 
 
 def slot_position(leader_xy: tuple[float, float], slot: Slot) -> tuple[float, float]:

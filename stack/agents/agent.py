@@ -21,13 +21,13 @@ import numpy as np
 import zenoh
 
 from ..comm import Keys, MessageError, RadioModel, decode, encode, receive
-from ..comm.messages import Clock, Diag, Scan, State
+from ..comm.messages import Clock, Diag, Fix, Scan, State
 from ..comm.radio import config_from_scenario
 from ..drivers import Driver, DriverLimits, make_driver
-from ..estimation import OdometryIntegrator
+from ..estimation import EkfConfig, PoseEKF
 from ..policies import make_policy
 from ..policies.pid import PidGains, PidPolicy
-from ..scenario import Scenario
+from ..scenario import Scenario, fix_due
 from .decision import DecisionLayer, Neighbour, obstacle_distance
 from .timing import LatencyHistogram
 
@@ -91,7 +91,13 @@ class Agent:
         self.sensor_stale = 0
 
         x, y, yaw = self.robot.pose
-        self.estimator = OdometryIntegrator(x, y, yaw)
+        v_std, w_std = self.robot.odom_noise
+        self.ekf_config = EkfConfig(odom_v_std=max(v_std, 0.02), odom_w_std=max(w_std, 0.02),
+                                    gyro_std=max(self.robot.imu_noise, 0.01),
+                                    fix_std=self.robot.fix[1] if self.robot.fix else 0.3)
+        self.estimator = PoseEKF(x, y, yaw, self.ekf_config)
+        self._fix: Fix | None = None
+        self.fixes_used = 0
         policy_name = cfg.policy or self.robot.policy
         self.policy = make_policy(policy_name, self.robot)
         p = self.robot.pid
@@ -149,6 +155,16 @@ class Agent:
             self._scan_arrival = time.perf_counter()
             self._cv.notify_all()
 
+    def _on_fix(self, sample: zenoh.Sample) -> None:
+        m = receive(sample, Fix, self._count_malformed)
+        if m is None:
+            return
+        if m.id != self.id:
+            self._count_malformed(str(sample.key_expr))
+            return
+        with self._cv:
+            self._fix = m
+
     def _on_clock(self, sample: zenoh.Sample) -> None:
         m = receive(sample, Clock, self._count_malformed)
         if m is None:
@@ -197,6 +213,7 @@ class Agent:
         self._diag_pub = s.declare_publisher(k.robot(self.id, "diag"), congestion_control=zenoh.CongestionControl.BLOCK)
         subs = [
             s.declare_subscriber(k.robot(self.id, "scan"), self._on_scan),
+            s.declare_subscriber(k.robot(self.id, "fix"), self._on_fix),
             s.declare_subscriber(k.all_robots("state"), self._on_state),
             s.declare_subscriber(k.world("clock"), self._on_clock),
             s.liveliness().declare_subscriber(k.all_alive, self._on_alive, history=True),
@@ -246,7 +263,8 @@ class Agent:
                 if self.cfg.stop.is_set():
                     return None
                 scan, odo = self._scan, self.driver.read()
-                if scan is not None and odo is not None and scan.step > self.step and odo.step == scan.step:
+                if scan is not None and odo is not None and scan.step > self.step and odo.step == scan.step \
+                        and (not lockstep or self._complete(scan.step, odo)):
                     break
                 if time.monotonic() > deadline:
                     if lockstep:
@@ -270,10 +288,20 @@ class Agent:
                 self.sim_now = max(self.sim_now, scan.stamp)
             return k
 
+    def _complete(self, k: int, odo) -> bool:
+        """Lock-step: step k's gyro rate and (when one is due) position fix are in too; zenoh keeps
+        order per key, not across keys, so waiting on the scan alone would race."""
+        if self.driver.has_imu and odo.wz_imu is None:
+            return False
+        if fix_due(self.robot, k, self.dt):
+            return self._fix is not None and self._fix.step == k
+        return True
+
     def _control_step(self) -> None:
         with self._cv:
             scan = self._scan
             odo = self.driver.read()
+            fix, self._fix = self._fix, None
             t_sensor = max(self._scan_arrival, self._odom_arrival)
             k = scan.step
             now = self.sim_now if self.cfg.lockstep else time.time()
@@ -286,12 +314,20 @@ class Agent:
             dead = set(self._dead)
         self.step = k
 
-        # estimator: dead reckoning on each new wheel odometry sample, eq. (1)
+        # estimator (filterpy EKF): the rates measured over the period just ended, then the motion
+        # over it (eq. 1), then an absolute fix if one came (see stack/estimation/ekf.py for the order)
+        ekf = self.estimator
         if odo.step > self._odo_step:
             n = 1 if self._odo_step < 0 else min(odo.step - self._odo_step, 5)
-            self.estimator.update(odo.v, odo.w, n * self.dt)
+            ekf.update_odometry(odo.v, odo.w)
+            if odo.wz_imu is not None:
+                ekf.update_gyro(odo.wz_imu)
+            ekf.predict(n * self.dt)
             self._odo_step = odo.step
-        pose = self.estimator.pose
+        if fix is not None:
+            if ekf.update_fix(fix.x, fix.y, fix.std):
+                self.fixes_used += 1
+        pose = ekf.pose
 
         # neighbours through the radio model: range from their reported position to our estimate
         for m in take:
@@ -323,7 +359,8 @@ class Agent:
 
         self.seq += 1
         st = State(id=self.id, role=self.role, seq=self.seq, stamp=self._stamp(), x=pose.x, y=pose.y, yaw=pose.yaw,
-                   v=pose.v, w=pose.w, step=k, situation=dec.situation, wall=time.time())
+                   v=pose.v, w=pose.w, step=k, situation=dec.situation, wall=time.time(),
+                   cov_trace=ekf.cov_trace)
         self._state_pub.put(encode(st))
         self.sent += 1
         self.driver.command(v, w, step=k)
@@ -339,5 +376,7 @@ class Agent:
                  delivered=c.delivered, dropped_loss=c.dropped_loss, dropped_range=c.dropped_range,
                  malformed=sum(malformed.values()), malformed_by_key=malformed, loop_hist=self.hist.as_dict(),
                  state_latency_hist=self.state_latency.as_dict(),
-                 situations={k: v for k, v in self.decision.counts.items() if v}, fault=self.fault)
+                 situations={k: v for k, v in self.decision.counts.items() if v}, fixes_used=self.fixes_used,
+                 fixes_rejected=self.estimator.rejected_fixes, inputs_rejected=self.estimator.rejected_nan,
+                 fault=self.fault)
         self._diag_pub.put(encode(d))

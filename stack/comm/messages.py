@@ -75,6 +75,22 @@ class Imu(_Msg):
     wz: float
 
 
+class Fix(_Msg):
+    """``.../fix``: an absolute position fix (GNSS, mocap, or the simulated stand-in), world frame."""
+
+    id: int
+    step: int
+    stamp: float
+    x: float
+    y: float
+    std: float
+
+    def __post_init__(self) -> None:
+        _finite(self)
+        if not self.std > 0:
+            raise ValueError("std must be > 0")
+
+
 class Scan(_Msg):
     """``.../scan``: 2D lidar, ``ranges[i]`` at angle_min + i * angle_increment (robot frame), metres."""
 
@@ -141,6 +157,9 @@ class Diag(_Msg):
     loop_hist: dict[int, int] = {}
     state_latency_hist: dict[int, int] = {}
     situations: dict[str, int] = {}
+    fixes_used: int = 0
+    fixes_rejected: int = 0
+    inputs_rejected: int = 0  # NaN/inf/negative inputs the estimator dropped
     fault: str = ""
 
 

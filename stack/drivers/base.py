@@ -51,6 +51,7 @@ class Driver(ABC):
     """Base of every driver. Subclasses never clamp, never time out, never forget the final zero."""
 
     name = "base"
+    has_imu = False  # True: read() pairs each odometry sample with the gyro rate of the same step
 
     def __init__(self, robot_id: int, limits: DriverLimits, clock=time.monotonic):
         self.robot_id = robot_id

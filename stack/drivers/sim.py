@@ -8,6 +8,7 @@ differential-drive body with acceleration limits.
 from __future__ import annotations
 
 import threading
+from dataclasses import replace
 import time
 from typing import Callable
 
@@ -20,6 +21,7 @@ from .base import Driver, DriverLimits, Odometry
 
 class SimDriver(Driver):
     name = "sim"
+    has_imu = True
 
     def __init__(self, robot_id: int, limits: DriverLimits, *, session: zenoh.Session, keys: Keys,
                  stamp: Callable[[], float] = time.time, on_malformed: Callable[[str], None] | None = None,
@@ -53,14 +55,15 @@ class SimDriver(Driver):
             return
         with self._data_lock:
             self._wz = (m.step, m.wz)
+        if self._on_odom is not None and self._latest is not None:
+            self._on_odom(self._latest)
 
     def _odom_cb(self, sample: zenoh.Sample) -> None:
         m = receive(sample, Odom, self._on_malformed)
         if m is None or not self._mine(m, sample):
             return
         with self._data_lock:
-            wz = self._wz[1] if self._wz is not None and self._wz[0] == m.step else None
-            odo = self._latest = Odometry(v=m.v, w=m.w, stamp=m.stamp, step=m.step, wz_imu=wz)
+            odo = self._latest = Odometry(v=m.v, w=m.w, stamp=m.stamp, step=m.step)
         if self._on_odom is not None:
             self._on_odom(odo)
 
@@ -78,8 +81,12 @@ class SimDriver(Driver):
         self._pub.put(encode(CmdVel(id=self.robot_id, step=step, stamp=self._stamp(), v=v, w=w)))
 
     def _read(self) -> Odometry | None:
+        """The newest odometry, with the gyro rate of the same step when it has arrived."""
         with self._data_lock:
-            return self._latest
+            odo, wz = self._latest, self._wz
+        if odo is not None and wz is not None and wz[0] == odo.step:
+            return replace(odo, wz_imu=wz[1])
+        return odo
 
     def _close(self) -> None:
         for s in self._subs:

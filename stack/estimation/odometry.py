@@ -21,7 +21,8 @@ class Pose:
 
 def wrap(a: float) -> float:
     """Angle to (-pi, pi]."""
-    return math.atan2(math.sin(a), math.cos(a))
+    a = math.atan2(math.sin(a), math.cos(a))
+    return a if a > -math.pi else math.pi
 
 
 class OdometryIntegrator:

@@ -138,6 +138,8 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
             "final_error_m": _f(math.hypot(ex[-1], ey[-1])),
             "estimator_rmse_m": _f(rmse),
             "situations": dict(d.situations) if d is not None else {},
+            "fixes": {"used": d.fixes_used, "rejected": d.fixes_rejected} if d is not None else None,
+            "estimator_inputs_rejected": d.inputs_rejected if d is not None else None,
             "alive_at_end": bool(alive[-1, j]),
         }
 

@@ -24,8 +24,8 @@ import numpy as np
 import zenoh
 
 from ..comm import Keys, MessageError, decode, encode
-from ..comm.messages import Clock, CmdVel, Imu, Odom, Scan, Truth, WorldStatus
-from ..scenario import Scenario, slot_position
+from ..comm.messages import Clock, CmdVel, Fix, Imu, Odom, Scan, Truth, WorldStatus
+from ..scenario import Scenario, fix_due, slot_position
 from .world import World
 
 log = logging.getLogger("stack.world")
@@ -118,7 +118,7 @@ class WorldServer:
         s = self.s
         block = zenoh.CongestionControl.BLOCK
         pubs = {(rid, t): s.declare_publisher(k.robot(rid, t), congestion_control=block)
-                for rid in self.ids for t in ("odom", "imu", "scan")}
+                for rid in self.ids for t in ("odom", "imu", "scan", "fix")}
         clock_pub = s.declare_publisher(k.world("clock"), congestion_control=block)
         truth_pub = s.declare_publisher(k.world("truth"), congestion_control=block)
         status_pub = s.declare_publisher(k.world("status"), congestion_control=block)
@@ -170,6 +170,10 @@ class WorldServer:
                 v, om = w.odometry(rid)
                 pubs[(rid, "odom")].put(encode(Odom(id=rid, step=self.k, stamp=stamp, v=v, w=om)))
                 pubs[(rid, "imu")].put(encode(Imu(id=rid, step=self.k, stamp=stamp, wz=w.gyro(rid))))
+                robot = sc.robots[i]
+                if fix_due(robot, self.k, dt):
+                    fx, fy = w.position_fix(rid, robot.fix[1])
+                    pubs[(rid, "fix")].put(encode(Fix(id=rid, step=self.k, stamp=stamp, x=fx, y=fy, std=robot.fix[1])))
                 lid = sc.robots[i].lidar
                 inc = lid.fov / (lid.beams - 1) if lid.beams > 1 else 0.0
                 pubs[(rid, "scan")].put(encode(Scan(id=rid, step=self.k, stamp=stamp, angle_min=-lid.fov / 2 if lid.beams > 1 else 0.0,

@@ -213,6 +213,11 @@ class World:
         std = self.sc.robots[i].imu_noise
         return float(self.w[i] + (self.rng.normal(0, std) if std > 0 else 0.0))
 
+    def position_fix(self, rid: int, std: float) -> tuple[float, float]:
+        """A noisy absolute position (GNSS / motion-capture stand-in)."""
+        i = self.index[rid]
+        return float(self.x[i] + self.rng.normal(0, std)), float(self.y[i] + self.rng.normal(0, std))
+
     def close(self) -> None:
         try:
             p.disconnect(physicsClientId=self.cid)
