@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from stack.agents.decision import DecisionLayer, Neighbour, obstacle_distance
-from stack.estimation.odometry import Pose
+from stack.estimation.pose import Pose
 from stack.scenario import FormationConfig, Slot
 
 F = FormationConfig(leader=0, goal=(30.0, 0.0), slots={1: Slot(3.0, math.radians(180))}, d_safe=3.0)

@@ -115,6 +115,8 @@ class Agent:
         self._clock: Clock | None = None
         self._inbox: list[State] = []
         self._states_seen: dict[int, int] = {}  # sender -> newest step seen on the wire
+        self._awaited: set[int] = set()  # lock-step: senders whose state of _awaited_step we wait for
+        self._awaited_step = -1
         self._dead: set[int] = set()
         self.neighbours: dict[int, Neighbour] = {}
         self.scans: deque[np.ndarray] = deque(maxlen=3)
@@ -191,7 +193,11 @@ class Agent:
         with self._cv:
             self._inbox.append(m)
             self._states_seen[m.id] = max(self._states_seen.get(m.id, -1), m.step)
-            self._cv.notify_all()
+            awaited = self._awaited
+            if awaited and m.id in awaited and m.step >= self._awaited_step:
+                awaited.discard(m.id)
+                if not awaited:  # wake the loop once, when the last awaited state is in
+                    self._cv.notify_all()
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         rid = Keys.id_of(str(sample.key_expr))
@@ -278,12 +284,15 @@ class Agent:
             k = scan.step
             clock = self._clock
             if lockstep and clock is not None and clock.step == k:
-                want = [i for i in clock.answered if i != self.id and i not in self._dead]
+                self._awaited_step = k - 1
+                self._awaited = {i for i in clock.answered if i != self.id and i not in self._dead
+                                 and self._states_seen.get(i, -1) < k - 1}
                 t_end = time.monotonic() + 1.0
-                while any(self._states_seen.get(i, -1) < k - 1 for i in want) and time.monotonic() < t_end:
+                while self._awaited and time.monotonic() < t_end:
                     if self.cfg.stop.is_set():
                         return None
-                    self._cv.wait(0.02)
+                    self._cv.wait(0.05)
+                self._awaited = set()
             if lockstep:
                 self.sim_now = max(self.sim_now, scan.stamp)
             return k

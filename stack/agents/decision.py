@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..estimation.odometry import wrap
+from ..estimation.pose import wrap
 from ..policies.base import Observation
 
 SITUATIONS = ("leader-1", "leader-2", "follower-1", "follower-2", "follower-3", "peer", "waiting")

@@ -10,7 +10,7 @@ Each agent runs one of these on its own sensors only (never ground truth):
 * ``update_fix``         an absolute position fix measures (x, y), H = [I2 0], Mahalanobis-gated.
 
 Call order and Q. Wheel odometry and the gyro report the rates over the period that has
-just elapsed (as ``OdometryIntegrator.update(v, w, dt)`` assumes), so per period call
+just elapsed (a wheel encoder counts ticks over the period), so per period call
 
     update_odometry(v, w); update_gyro(wz); predict(dt); [update_fix(x, y) stamped at its end]
 
@@ -51,7 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
-from .odometry import Pose, wrap
+from .pose import Pose, wrap
 
 __all__ = ["EkfConfig", "PoseEKF", "motion", "motion_jacobian"]
 

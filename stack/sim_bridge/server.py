@@ -94,9 +94,11 @@ class WorldServer:
         with self._cv:
             self.last_cmd[rid] = (m.v, m.w, self.t, m.step)
             if m.step >= 0:
-                self.cmds.setdefault(m.step, {})[rid] = (m.v, m.w)
+                got = self.cmds.setdefault(m.step, {})
+                got[rid] = (m.v, m.w)
                 self.unresponsive.discard(rid)
-            self._cv.notify_all()
+                if m.step == self.k and len(got) >= len(self.alive - self.unresponsive):
+                    self._cv.notify_all()  # wake the loop once the step may be complete
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         rid = Keys.id_of(str(sample.key_expr))
@@ -271,7 +273,7 @@ class WorldServer:
                     self.late_steps += 1
                     self.events.append({"t": self.t, "robots": sorted(waiting), "event": "unresponsive"})
                     return
-                self._cv.wait(0.5)
+                self._cv.wait(0.1)
 
     def _task_done(self, arrived_at: float | None) -> tuple[bool, float | None]:
         if not self.cfg.stop_early:
