@@ -48,3 +48,11 @@ def test_every_zenoh_session_goes_through_the_session_helper():
         if path.name == "session.py":
             continue
         assert "zenoh.open(" not in path.read_text(), path
+
+
+def test_agents_never_touch_ground_truth():
+    """Agents estimate their own pose: no code in stack/agents, drivers or policies names the truth topic."""
+    for room in ("agents", "drivers", "policies", "estimation"):
+        for path in (ROOT / room).rglob("*.py"):
+            text = path.read_text()
+            assert '"truth"' not in text and "world/truth" not in text and "Truth" not in text, path

@@ -135,3 +135,40 @@ def test_noisy_sensors_with_fixes_keep_the_estimate_close(tmp_path):
     _, rep0 = run_fleet(no_fix, tmp_path / "nofix", "--no-plots")
     drift = [r["estimator_rmse_m"] for r in rep0["robots"].values()]
     assert sum(drift) > 2 * sum(rmse), (drift, rmse)
+
+
+def test_realtime_fleet_with_an_outside_listener(tmp_path, diamond):
+    """--realtime on the wall clock, --listen on a known port: an outside Zenoh client joins and hears the clock."""
+    import threading
+
+    from stack.comm.session import SessionConfig, free_tcp_endpoint, open_session
+
+    ep = free_tcp_endpoint()
+    seen = []
+    done = threading.Event()
+
+    def listen():
+        import time
+
+        deadline = time.monotonic() + 60
+        while not done.is_set() and time.monotonic() < deadline:
+            try:
+                with open_session(SessionConfig(connect=[ep])) as s:
+                    sub = s.declare_subscriber("stack/*/world/clock", lambda smp: seen.append(str(smp.key_expr)))
+                    done.wait(60)
+                    sub.undeclare()
+                    return
+            except Exception:  # noqa: BLE001 - the router is not up yet: try again
+                time.sleep(0.2)
+
+    t = threading.Thread(target=listen, daemon=True)
+    t.start()
+    proc, rep = run_fleet(diamond, tmp_path / "out", "--realtime", "--duration", "6", "--listen", ep, "--no-plots")
+    done.set()
+    t.join(10)
+    assert rep is not None, proc.stderr
+    assert rep["mode"] == "realtime" and proc.returncode in (0, 1)
+    assert 4.0 <= rep["wall_time_s"] and rep["sim_time_s"] >= 5.9
+    assert rep["robots"]["0"]["path_length_m"] > 1.5  # the leader drove on the wall clock
+    assert rep["control_loop_ms"]["samples"] > 100
+    assert len(seen) > 20 and seen[0].endswith("/world/clock")

@@ -230,6 +230,8 @@ class Agent:
                 token = s.liveliness().declare_token(k.alive(self.id))
                 log.info("agent %d (%s, policy %s, driver %s) up on %s", self.id, self.role, self.policy.name,
                          self.driver.name, self.cfg.connect)
+                log.info("agent %d robot config: %s", self.id, self.robot)
+                log.info("agent %d estimator config: %s", self.id, self.ekf_config)
                 try:
                     self._loop()
                 finally:
@@ -387,5 +389,6 @@ class Agent:
                  state_latency_hist=self.state_latency.as_dict(),
                  situations={k: v for k, v in self.decision.counts.items() if v}, fixes_used=self.fixes_used,
                  fixes_rejected=self.estimator.rejected_fixes, inputs_rejected=self.estimator.rejected_nan,
+                 sensor_stale=self.sensor_stale,
                  fault=self.fault)
         self._diag_pub.put(encode(d))

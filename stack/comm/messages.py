@@ -160,6 +160,7 @@ class Diag(_Msg):
     fixes_used: int = 0
     fixes_rejected: int = 0
     inputs_rejected: int = 0  # NaN/inf/negative inputs the estimator dropped
+    sensor_stale: int = 0  # real time: times the robot was stopped because its sensors went stale
     fault: str = ""
 
 

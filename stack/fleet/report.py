@@ -140,6 +140,7 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
             "situations": dict(d.situations) if d is not None else {},
             "fixes": {"used": d.fixes_used, "rejected": d.fixes_rejected} if d is not None else None,
             "estimator_inputs_rejected": d.inputs_rejected if d is not None else None,
+            "sensor_stale_stops": d.sensor_stale if d is not None else None,
             "alive_at_end": bool(alive[-1, j]),
         }
 
