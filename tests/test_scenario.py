@@ -102,3 +102,39 @@ def test_overrides_apply_and_revalidate():
     assert sc.comm.loss == 0.0  # the original is untouched
     raw = copy.deepcopy(sc.raw)
     assert raw == scenario_dict()
+
+
+def test_agent_without_a_router_says_so_in_one_line():
+    from stack.comm.session import free_tcp_endpoint
+
+    proc = run_cli(["stack-agent", "--id", "1", "--scenario", str(SCENARIOS / "four-robot-diamond.yaml"),
+                    "--connect", free_tcp_endpoint()], timeout=60)
+    assert proc.returncode == 1, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "cannot reach a Zenoh router at tcp/127.0.0.1:" in lines[0], proc.stderr
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["--role", "leader"], "--role: robot 1 is follower"),
+    (["--steps", "0"], "--steps: must be >= 1"),
+    (["--connect", "tcp/192.168.1.5:7447"], "not a loopback address"),
+    (["--id", "9"], "robots: no robot with id 9"),
+])
+def test_agent_bad_flags_exit_2(argv, message):
+    args = ["stack-agent", "--id", "1", "--scenario", str(SCENARIOS / "four-robot-diamond.yaml")]
+    if argv[0] == "--id":
+        args[2] = argv[1]
+        argv = []
+    proc = run_cli(args + argv, timeout=60)
+    assert proc.returncode == 2 and message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+
+
+def test_fleet_listen_port_in_use_is_bad_input(diamond):
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        proc = run_cli(["stack-fleet", "run", str(diamond), "--listen", f"tcp/127.0.0.1:{port}"], timeout=60)
+    assert proc.returncode == 2 and "address in use" in proc.stderr, proc.stderr

@@ -7,7 +7,7 @@ import logging
 import signal
 import sys
 
-from ..comm.session import EndpointError, SessionConfig, check_endpoint, open_session
+from ..comm.session import EndpointError, SessionConfig, SessionError, check_endpoint, open_session
 from ..drivers import UnknownDriver
 from ..policies import PolicyUnavailable
 from ..scenario import DRIVERS, POLICIES, ScenarioError, load_scenario, with_overrides
@@ -81,7 +81,7 @@ def cli(argv: list[str] | None = None) -> int:
     except (PolicyUnavailable, UnknownDriver) as e:
         print(f"stack-agent: {e}", file=sys.stderr)
         return 2
-    except TimeoutError as e:
+    except (TimeoutError, SessionError) as e:
         print(f"stack-agent: {e}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:

@@ -11,7 +11,7 @@ import signal
 import sys
 import threading
 
-from .session import EndpointError, SessionConfig, open_session
+from .session import EndpointError, SessionConfig, SessionError, open_session
 
 
 def main(listen: list[str], config_file: str | None = None, allow_remote: bool = False) -> int:
@@ -36,6 +36,9 @@ def cli(argv: list[str] | None = None) -> int:
     except EndpointError as e:
         print(f"stack-router: --listen: {e}", file=sys.stderr)
         return 2
+    except SessionError as e:
+        print(f"stack-router: {e}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -26,6 +26,10 @@ class EndpointError(ValueError):
     """An endpoint string that zenoh would not accept, or one off loopback without opt-in."""
 
 
+class SessionError(RuntimeError):
+    """A session that could not open: no router at the endpoint, a port in use, a bad config file."""
+
+
 @dataclass
 class SessionConfig:
     """One Zenoh session.
@@ -65,7 +69,10 @@ def check_endpoint(endpoint: str, allow_remote: bool = False) -> str:
 
 
 def zenoh_config(cfg: SessionConfig) -> zenoh.Config:
-    conf = zenoh.Config.from_file(cfg.config_file) if cfg.config_file else zenoh.Config()
+    try:
+        conf = zenoh.Config.from_file(cfg.config_file) if cfg.config_file else zenoh.Config()
+    except (zenoh.ZError, OSError) as e:
+        raise SessionError(f"{cfg.config_file}: not a usable zenoh config: {e}") from None
     for ep in cfg.connect + cfg.listen:
         check_endpoint(ep, cfg.allow_remote)
     conf.insert_json5("mode", json.dumps(cfg.mode))
@@ -82,12 +89,30 @@ def zenoh_config(cfg: SessionConfig) -> zenoh.Config:
 
 
 def open_session(cfg: SessionConfig) -> zenoh.Session:
-    """Open a session (a context manager: ``with open_session(cfg) as s``)."""
-    return zenoh.open(zenoh_config(cfg))
+    """Open a session (a context manager: ``with open_session(cfg) as s``); :class:`SessionError` if it cannot."""
+    conf = zenoh_config(cfg)
+    try:
+        return zenoh.open(conf)
+    except zenoh.ZError as e:
+        where = ", ".join(cfg.listen if cfg.mode == "router" else cfg.connect) or "(no endpoint)"
+        what = "cannot listen on" if cfg.mode == "router" else "cannot reach a Zenoh router at"
+        reason = str(e).split(" at /")[0].strip()
+        raise SessionError(f"{what} {where}: {reason}") from None
 
 
 def client(endpoint: str, **kw) -> SessionConfig:
     return SessionConfig(mode="client", connect=[endpoint], **kw)
+
+
+def port_free(endpoint: str) -> bool:
+    """Whether a TCP endpoint's port can be bound now."""
+    host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
+    with socket.socket(socket.AF_INET6 if ":" in host.strip("[]") else socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind((host.strip("[]"), int(port)))
+        except OSError:
+            return False
+    return True
 
 
 def free_tcp_endpoint(host: str = LOOPBACK) -> str:

@@ -9,7 +9,7 @@ import re
 import sys
 from pathlib import Path
 
-from ..comm.session import EndpointError, check_endpoint
+from ..comm.session import EndpointError, SessionError, check_endpoint, port_free
 from ..policies import available as available_policies
 from ..scenario import DRIVERS, POLICIES, ScenarioError, load_scenario, with_overrides
 from .orchestrator import EXIT_BAD_INPUT, FleetConfig, run_fleet, sigterm_as_interrupt
@@ -97,6 +97,10 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
             raise ScenarioError(f"--kill {rid}@{t:g}: no robot with id {rid} in {a.scenario}")
     if a.listen:
         check_endpoint(a.listen)
+        if not a.listen.startswith("tcp/"):
+            raise ScenarioError(f"--listen {a.listen}: the fleet's router listens on TCP (tcp/HOST:PORT)")
+        if not port_free(a.listen):
+            raise ScenarioError(f"--listen {a.listen}: address in use")
     if a.gui and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         raise ScenarioError("--gui: no display (DISPLAY is not set); run without --gui, or under a desktop or Xvfb")
     out = a.out or Path("runs") / sc.name
@@ -124,6 +128,9 @@ def cli(argv: list[str] | None = None) -> int:
     sigterm_as_interrupt()
     try:
         code, report = run_fleet(cfg)
+    except SessionError as e:
+        print(f"stack-fleet: {e}", file=sys.stderr)
+        return 3
     except KeyboardInterrupt:
         print("stack-fleet: interrupted; every process was stopped", file=sys.stderr)
         return 130

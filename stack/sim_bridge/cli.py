@@ -8,7 +8,7 @@ import signal
 import sys
 from pathlib import Path
 
-from ..comm.session import EndpointError, SessionConfig, check_endpoint, open_session
+from ..comm.session import EndpointError, SessionConfig, SessionError, check_endpoint, open_session
 from ..scenario import ScenarioError, load_scenario
 from .server import WorldConfig, WorldServer
 
