@@ -243,6 +243,12 @@ class _Reader:
         return value
 
 
+def _max(rd: "_Reader", v: int, hi: int, path: str) -> int:
+    if v > hi:
+        raise rd.fail(path, f"must be <= {hi}, got {v}")
+    return v
+
+
 def _kind(value: Any) -> str:
     if value is None:
         return "nothing"
@@ -299,7 +305,7 @@ def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict
         m = rd.mapping(d["lidar"], f"{path}.lidar", {"beams", "fov_deg", "range", "noise_std"})
         prev = out.get("lidar", LidarConfig())
         out["lidar"] = LidarConfig(
-            beams=rd.integer(m.get("beams", prev.beams), f"{path}.lidar.beams", 1),
+            beams=_max(rd, rd.integer(m.get("beams", prev.beams), f"{path}.lidar.beams", 1), 10_000, f"{path}.lidar.beams"),
             fov=math.radians(rd.number(m.get("fov_deg", math.degrees(prev.fov)), f"{path}.lidar.fov_deg", 0.0, 360.0, lo_open=True)),
             range=rd.number(m.get("range", prev.range), f"{path}.lidar.range", 0.0, 100.0, lo_open=True),
             noise_std=rd.number(m.get("noise_std", prev.noise_std), f"{path}.lidar.noise_std", 0.0),
@@ -327,7 +333,8 @@ def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict
     params = dict(out.get("driver_params", {}))
     for name in DRIVERS:
         if name in d:
-            params[name] = dict(rd.mapping(d[name], f"{path}.{name}", set(d[name]) if isinstance(d[name], dict) else set()))
+            # no driver takes settings yet (the can/mavlink/jackal issues add theirs here)
+            params[name] = dict(rd.mapping(d[name] or {}, f"{path}.{name}", set()))
     out["driver_params"] = params
     return out
 
@@ -420,6 +427,8 @@ def parse_scenario(data: Any, source: str = "<scenario>") -> Scenario:
         if "id" not in r:
             raise rd.fail(f"{p}.id", "missing")
         rid = rd.integer(r["id"], f"{p}.id", 0)
+        if rid > 65535:
+            raise rd.fail(f"{p}.id", f"must be <= 65535, got {rid}")
         if rid in seen:
             raise rd.fail(f"{p}.id", f"duplicate id {rid}")
         seen.add(rid)
@@ -446,10 +455,9 @@ def parse_scenario(data: Any, source: str = "<scenario>") -> Scenario:
         slots: dict[int, Slot] = {}
         for key, s in slots_d.items():
             sp = f"formation.slots.{key}"
-            try:
-                sid = int(key)
-            except (TypeError, ValueError):
-                raise rd.fail(sp, "slot keys are robot ids") from None
+            if isinstance(key, bool) or not (isinstance(key, int) or (isinstance(key, str) and key.isascii() and key.isdigit())):
+                raise rd.fail(sp, "slot keys are robot ids")
+            sid = int(key)
             if sid not in seen:
                 raise rd.fail(sp, f"no robot with id {sid}")
             if sid == leader:
@@ -534,6 +542,7 @@ def with_overrides(sc: Scenario, *, policy: str | None = None, driver: str | Non
         comm = dict(raw.get("comm") or {})
         if loss is not None:
             comm["loss"] = loss
+            comm["burst"] = None  # --loss asks for Bernoulli loss at that rate
         if latency_ms is not None:
             comm["latency_ms"] = latency_ms
         raw["comm"] = comm

@@ -44,7 +44,8 @@ def test_four_agents_reach_their_slots(tmp_path, diamond):
 
     # states crossed processes: every agent heard the other three
     assert rep["comm"]["delivered"] > 0
-    assert rep["comm"]["delivered"] == rep["comm"]["received"]  # no loss, all in range
+    assert rep["comm"]["delivered"] == rep["comm"]["received"] == rep["comm"]["sent"]  # no loss, all in range
+    assert rep["comm"]["broadcasts"] * 3 >= rep["comm"]["sent"] > 0
 
     # every follower moved toward its slot; the leader reached the goal
     z = np.load(tmp_path / "out" / "truth.npz")

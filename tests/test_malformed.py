@@ -130,3 +130,19 @@ def test_counts_add_up_and_nobody_crashed(running_fleet):
     time.sleep(0.5)
     assert agent.step > step0  # still stepping
     assert not errors
+
+
+def test_valid_but_wrong_scan_and_odd_keys_are_counted(running_fleet):
+    """A scan that decodes but does not fit the robot's lidar, and a key with a non-ASCII digit: counted, no crash."""
+    agent, world, s, errors = running_fleet
+    before = sum(agent.malformed.values())
+    scan = dict(VALID[Scan]) | {"step": 10**6, "ranges": [1.0, 2.0]}
+    s.put(f"stack/{FLEET}/0/scan", msgpack.packb(scan), congestion_control=zenoh.CongestionControl.BLOCK)
+    s.put(f"stack/{FLEET}/\u00b2/state", msgpack.packb(VALID[State]), congestion_control=zenoh.CongestionControl.BLOCK)
+    deadline = time.monotonic() + 5
+    while sum(agent.malformed.values()) < before + 2 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert sum(agent.malformed.values()) == before + 2
+    step0 = agent.step
+    time.sleep(0.5)
+    assert agent.step > step0 and not errors

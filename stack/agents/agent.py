@@ -149,6 +149,8 @@ class Agent:
             m = decode(sample.payload.to_bytes(), Scan)
             if m.id != self.id:
                 raise MessageError("scan for another robot")
+            if len(m.ranges) != self.robot.lidar.beams or m.range_max > self.robot.lidar.range + 1e-6:
+                raise MessageError("scan does not match this robot's lidar")
         except MessageError:
             self._count_malformed(str(sample.key_expr))
             return
@@ -205,8 +207,7 @@ class Agent:
             return
         with self._cv:
             if sample.kind == zenoh.SampleKind.DELETE:
-                self._dead.add(rid)
-                self.neighbours.pop(rid, None)
+                self._dead.add(rid)  # the loop drops it from its neighbours (only the loop touches them)
                 log.info("agent %d: robot %d left (liveliness lost)", self.id, rid)
             else:
                 self._dead.discard(rid)
@@ -345,6 +346,8 @@ class Agent:
             if m.id in dead:
                 continue
             self.radio.offer(m.id, (m.x, m.y), (pose.x, pose.y), m.stamp, m)
+        for nid in dead & set(self.neighbours):
+            del self.neighbours[nid]
         for m in self.radio.ready(now):
             if m.id in dead:
                 continue

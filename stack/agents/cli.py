@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 import logging
 import signal
 import sys
@@ -22,6 +23,12 @@ class _Parser(argparse.ArgumentParser):
         sys.exit(2)
 
 
+def _fleet_name(text: str) -> str:
+    if not re.fullmatch(r"[A-Za-z0-9_-]+", text):
+        raise argparse.ArgumentTypeError(f"expected letters, digits, '_' or '-' (a key-expression chunk), got {text!r}")
+    return text
+
+
 def parser() -> argparse.ArgumentParser:
     ap = _Parser(prog="stack-agent", description="One robot of a formation: sensors, estimator, decision layer, policy, driver.")
     ap.add_argument("--id", type=int, required=True, help="robot id in the scenario")
@@ -30,7 +37,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--policy", choices=POLICIES, help="override the robot's policy")
     ap.add_argument("--driver", choices=DRIVERS, help="override the robot's driver")
     ap.add_argument("--connect", default="tcp/127.0.0.1:7447", help="Zenoh router endpoint (default %(default)s)")
-    ap.add_argument("--fleet", default="default", help="fleet name, the key prefix stack/<fleet>/ (default %(default)s)")
+    ap.add_argument("--fleet", default="default", type=_fleet_name, help="fleet name, the key prefix stack/<fleet>/ (default %(default)s)")
     ap.add_argument("--lockstep", action="store_true", help="answer the simulated world's steps (set by stack-fleet)")
     ap.add_argument("--steps", type=int, help="stop after this many control steps")
     ap.add_argument("--seed", type=int, help="seed of every random source (default: the scenario's)")

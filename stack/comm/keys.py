@@ -42,4 +42,4 @@ class Keys:
         if len(parts) < 4:
             return None
         token = parts[3] if parts[2] == "alive" else parts[2]
-        return int(token) if token.isdigit() else None
+        return int(token) if token.isascii() and token.isdigit() else None

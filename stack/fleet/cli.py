@@ -97,13 +97,15 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
             raise ScenarioError(f"--kill {rid}@{t:g}: no robot with id {rid} in {a.scenario}")
     if a.listen:
         check_endpoint(a.listen)
-        if not a.listen.startswith("tcp/"):
+        if not re.fullmatch(r"tcp/[^#?]+:\d+", a.listen):
             raise ScenarioError(f"--listen {a.listen}: the fleet's router listens on TCP (tcp/HOST:PORT)")
         if not port_free(a.listen):
             raise ScenarioError(f"--listen {a.listen}: address in use")
     if a.gui and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         raise ScenarioError("--gui: no display (DISPLAY is not set); run without --gui, or under a desktop or Xvfb")
     out = a.out or Path("runs") / sc.name
+    if out.exists() and not out.is_dir():
+        raise ScenarioError(f"--out {out}: exists and is not a folder")
     return FleetConfig(scenario=sc, out=out, realtime=a.realtime, gui=a.gui, listen=a.listen, kills=a.kill,
                        progress=not a.no_progress, plots=not a.no_plots)
 

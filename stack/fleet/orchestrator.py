@@ -279,9 +279,20 @@ def run_fleet(cfg: FleetConfig) -> tuple[int, dict]:
     except _Abort:
         diags, estimates = {}, {}
     finally:
+        # agents first (their zero commands reach the world), then the world
+        agents_left = [pr for n, pr in procs.items() if n.startswith("agent-") and pr.poll() is None]
+        for pr in agents_left:
+            pr.asked_to_stop = True
+            pr.signal(signal.SIGTERM)
+        for pr in agents_left:
+            try:
+                pr.p.wait(5)
+            except subprocess.TimeoutExpired:
+                pr.signal(signal.SIGKILL)
+                pr.p.wait(5)
         for pr in procs.values():
             if pr.poll() is None:
-                pr.stop(2)
+                pr.stop(5)
             pr.close()
         router.stop(5)
         router.close()

@@ -158,6 +158,10 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
         hist.merge(d.loop_hist)
         lat.merge(d.state_latency_hist)
     comm["malformed"] += int(world.get("malformed", 0))
+    # the contract counts per link (sent = delivered + dropped_loss + dropped_range, plus any still in flight):
+    # every state reaches every receiver's radio model, so links sent = messages offered there
+    comm["broadcasts"] = comm["sent"]
+    comm["sent"] = comm["received"]
 
     # success: the leader (or every peer) at its goal within max_time, no collisions if asked
     max_time = sc.success.max_time or sc.duration
