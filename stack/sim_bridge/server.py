@@ -165,22 +165,6 @@ class WorldServer:
         while True:
             self.t = self.k * dt
             stamp = self.t if not self.cfg.realtime else time.time()
-            clock_pub.put(encode(Clock(step=self.k, t=self.t, dt=dt, answered=answered, lockstep=not self.cfg.realtime)))
-            scans = w.lidar()
-            for rid in self.ids:
-                i = w.index[rid]
-                v, om = w.odometry(rid)
-                pubs[(rid, "odom")].put(encode(Odom(id=rid, step=self.k, stamp=stamp, v=v, w=om)))
-                pubs[(rid, "imu")].put(encode(Imu(id=rid, step=self.k, stamp=stamp, wz=w.gyro(rid))))
-                robot = sc.robots[i]
-                if fix_due(robot, self.k, dt):
-                    fx, fy = w.position_fix(rid, robot.fix[1])
-                    pubs[(rid, "fix")].put(encode(Fix(id=rid, step=self.k, stamp=stamp, x=fx, y=fy, std=robot.fix[1])))
-                lid = sc.robots[i].lidar
-                inc = lid.fov / (lid.beams - 1) if lid.beams > 1 else 0.0
-                pubs[(rid, "scan")].put(encode(Scan(id=rid, step=self.k, stamp=stamp, angle_min=-lid.fov / 2 if lid.beams > 1 else 0.0,
-                                                    angle_increment=inc, range_max=lid.range, ranges=scans[rid].tolist())))
-            truth_pub.put(encode(Truth(step=self.k, t=self.t, ids=self.ids, x=w.x.tolist(), y=w.y.tolist(), yaw=w.yaw.tolist())))
 
             with self._cv:
                 alive_now = set(self.alive)
@@ -202,6 +186,24 @@ class WorldServer:
             if not alive_now and self.k > 0:
                 end_reason = "no agent left"
                 break
+
+            # the step goes on: its clock and sensors go out (none for a step that is not run)
+            clock_pub.put(encode(Clock(step=self.k, t=self.t, dt=dt, answered=answered, lockstep=not self.cfg.realtime)))
+            scans = w.lidar()
+            for rid in self.ids:
+                i = w.index[rid]
+                v, om = w.odometry(rid)
+                pubs[(rid, "odom")].put(encode(Odom(id=rid, step=self.k, stamp=stamp, v=v, w=om)))
+                pubs[(rid, "imu")].put(encode(Imu(id=rid, step=self.k, stamp=stamp, wz=w.gyro(rid))))
+                robot = sc.robots[i]
+                if fix_due(robot, self.k, dt):
+                    fx, fy = w.position_fix(rid, robot.fix[1])
+                    pubs[(rid, "fix")].put(encode(Fix(id=rid, step=self.k, stamp=stamp, x=fx, y=fy, std=robot.fix[1])))
+                lid = sc.robots[i].lidar
+                inc = lid.fov / (lid.beams - 1) if lid.beams > 1 else 0.0
+                pubs[(rid, "scan")].put(encode(Scan(id=rid, step=self.k, stamp=stamp, angle_min=-lid.fov / 2 if lid.beams > 1 else 0.0,
+                                                    angle_increment=inc, range_max=lid.range, ranges=scans[rid].tolist())))
+            truth_pub.put(encode(Truth(step=self.k, t=self.t, ids=self.ids, x=w.x.tolist(), y=w.y.tolist(), yaw=w.yaw.tolist())))
 
             # wait for commands of step k
             if self.cfg.realtime:
