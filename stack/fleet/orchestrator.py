@@ -107,6 +107,20 @@ class _Proc:
         self.log_file.close()
 
 
+def _stop_all(procs: list[_Proc], timeout: float) -> None:
+    """SIGTERM every running process at once (agents: zero velocity on the way out), then wait; SIGKILL stragglers."""
+    running = [pr for pr in procs if pr.poll() is None]
+    for pr in running:
+        pr.asked_to_stop = True
+        pr.signal(signal.SIGTERM)
+    for pr in running:
+        try:
+            pr.p.wait(timeout)
+        except subprocess.TimeoutExpired:
+            pr.signal(signal.SIGKILL)
+            pr.p.wait(5)
+
+
 class _Abort(Exception):
     """The fleet could not start; the report says why."""
 
@@ -252,15 +266,7 @@ def run_fleet(cfg: FleetConfig) -> tuple[int, dict]:
             progress.close()
             # stop in order: agents (zero velocity on the way out), then the world, then the router
             agents = [pr for n, pr in procs.items() if n.startswith("agent-")]
-            for pr in agents:
-                pr.asked_to_stop = pr.asked_to_stop or pr.poll() is None
-                pr.signal(signal.SIGTERM)
-            for pr in agents:
-                try:
-                    pr.p.wait(10)
-                except subprocess.TimeoutExpired:
-                    pr.signal(signal.SIGKILL)
-                    pr.p.wait(5)
+            _stop_all(agents, timeout=10)
             for pr in agents:
                 rc = pr.poll()
                 if pr.killed_at is None and rc not in (0, None) and not any(c["process"] == pr.name for c in crashed):
@@ -280,16 +286,7 @@ def run_fleet(cfg: FleetConfig) -> tuple[int, dict]:
         diags, estimates = {}, {}
     finally:
         # agents first (their zero commands reach the world), then the world
-        agents_left = [pr for n, pr in procs.items() if n.startswith("agent-") and pr.poll() is None]
-        for pr in agents_left:
-            pr.asked_to_stop = True
-            pr.signal(signal.SIGTERM)
-        for pr in agents_left:
-            try:
-                pr.p.wait(5)
-            except subprocess.TimeoutExpired:
-                pr.signal(signal.SIGKILL)
-                pr.p.wait(5)
+        _stop_all([pr for n, pr in procs.items() if n.startswith("agent-")], timeout=5)
         for pr in procs.values():
             if pr.poll() is None:
                 pr.stop(5)
