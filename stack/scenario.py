@@ -87,6 +87,28 @@ class PidConfig:
 
 
 @dataclass(frozen=True)
+class AinaConfig:
+    """Parameters of the immune-network policy (``stack.policies.aina``, Deng et al.)."""
+
+    n_ab: int = 36  # N_Ab antibodies, the steering directions 2 pi (s - 1) / N_Ab
+    n_s: int = 8  # N_S virtual range sensors (lidar sectors), like the AmigoBot's eight sonars
+    tau1: float = 0.4  # eq. (6): weight of the leader's steering direction
+    tau2: float = 0.5  # eq. (6): weight of the virtual robot's azimuth
+    tau3: float = 0.1  # eq. (6): weight of the obstacle term
+    mu1: float = 0.5  # eq. (10): the leader's goal weight
+    mu2: float = 0.5  # eq. (10): the leader's obstacle weight
+    k_s: float = 0.5  # eq. (4): natural death coefficient
+    kappa: float = 4.0  # eq. (9) as read here: steepness of the repulsion over the normalised distance
+    k1: float = 0.3  # eq. (13): K1 [1/s]
+    k2: float = 0.08  # eq. (13): K2 [1/s]
+    v_leader: float = 0.6  # the leader's constant speed (section 3.2), a fraction of v_max
+    k_heading: float = 2.0  # steering-direction error -> angular velocity [1/s]
+    robot_detect: float = 1.0  # a neighbour is an obstacle within this clearance [m] ("detection radius")
+    clones: int = 12  # Algorithm 1: clones made each step
+    p_mutation: float = 0.1  # Algorithm 1: probability that one gene (bit) flips
+
+
+@dataclass(frozen=True)
 class RobotConfig:
     id: int
     role: str | None
@@ -104,6 +126,7 @@ class RobotConfig:
     cmd_timeout: float = 0.5  # driver watchdog: stale command -> zero [s]
     base: BaseConfig = field(default_factory=BaseConfig)
     pid: PidConfig = field(default_factory=PidConfig)
+    aina: AinaConfig = field(default_factory=AinaConfig)
     goal: tuple[float, float] | None = None
     driver_params: dict[str, dict[str, Any]] = field(default_factory=dict)
 
@@ -133,12 +156,34 @@ class Slot:
 
 
 @dataclass(frozen=True)
+class SlotChange:
+    """``formation.schedule[i]``: from sim time ``at`` on, these followers take these slots."""
+
+    at: float
+    slots: dict[int, Slot]
+
+
+@dataclass(frozen=True)
 class FormationConfig:
     leader: int
     goal: tuple[float, float]
-    slots: dict[int, Slot]
+    slots: dict[int, Slot]  # the slots at t = 0
     d_safe: float = 3.0  # Bai 2022 section V-A
     d_leader_slow: float = 5.0  # eq. (20)
+    schedule: tuple[SlotChange, ...] = ()  # formation changes in time (Deng section 5.1), sorted by ``at``
+
+    def slots_at(self, t: float) -> dict[int, Slot]:
+        """The slots in force at sim time ``t``: each change overrides the followers it names."""
+        out = dict(self.slots)
+        for ch in self.schedule:
+            if ch.at > t + 1e-9:
+                break
+            out.update(ch.slots)
+        return out
+
+    @property
+    def final_slots(self) -> dict[int, Slot]:
+        return self.slots_at(math.inf)
 
 
 @dataclass(frozen=True)
@@ -265,7 +310,7 @@ def _kind(value: Any) -> str:
     return type(value).__name__
 
 
-_ROBOT_KEYS = {"radius", "v_max", "w_max", "lidar", "odom_noise", "imu_noise", "fix", "comm_range", "cmd_timeout", "base", "pid", "policy", "driver"} | set(DRIVERS)
+_ROBOT_KEYS = {"radius", "v_max", "w_max", "lidar", "odom_noise", "imu_noise", "fix", "comm_range", "cmd_timeout", "base", "pid", "aina", "policy", "driver"} | set(DRIVERS)
 
 
 def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict[str, Any]:
@@ -326,6 +371,21 @@ def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict
         if "v_cruise" in vals and vals["v_cruise"] > 1.0:
             raise rd.fail(f"{path}.pid.v_cruise", f"must be <= 1 (a fraction of v_max), got {vals['v_cruise']:g}")
         out["pid"] = replace(prev, **vals)
+    if "aina" in d:
+        prev = out.get("aina", AinaConfig())
+        m = rd.mapping(d["aina"], f"{path}.aina", set(AinaConfig.__dataclass_fields__))
+        vals: dict[str, Any] = {}
+        for k, v in m.items():
+            if isinstance(getattr(prev, k), int):
+                vals[k] = _max(rd, rd.integer(v, f"{path}.aina.{k}", 1), 3600, f"{path}.aina.{k}")
+            else:
+                vals[k] = rd.number(v, f"{path}.aina.{k}", 0.0, 1.0 if k in ("p_mutation", "v_leader") else None)
+        a = replace(prev, **vals)
+        if abs(a.tau1 + a.tau2 + a.tau3 - 1.0) > 1e-6:
+            raise rd.fail(f"{path}.aina", f"tau1 + tau2 + tau3 must be 1 (eq. 6), got {a.tau1 + a.tau2 + a.tau3:g}")
+        if abs(a.mu1 + a.mu2 - 1.0) > 1e-6:
+            raise rd.fail(f"{path}.aina", f"mu1 + mu2 must be 1 (eq. 10), got {a.mu1 + a.mu2:g}")
+        out["aina"] = a
     if "policy" in d:
         out["policy"] = rd.choice(d["policy"], f"{path}.policy", POLICIES)
     if "driver" in d:
@@ -337,6 +397,28 @@ def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict
             params[name] = dict(rd.mapping(d[name] or {}, f"{path}.{name}", set()))
     out["driver_params"] = params
     return out
+
+
+def _slots(rd: _Reader, slots_d: Any, path: str, seen: set[int], leader: int) -> dict[int, Slot]:
+    """A mapping of follower id -> {L, psi_deg} (``formation.slots`` and each schedule entry's)."""
+    if not isinstance(slots_d, dict):
+        raise rd.fail(path, f"expected a mapping of robot id to {{L, psi_deg}}, got {_kind(slots_d)}")
+    slots: dict[int, Slot] = {}
+    for key, s in slots_d.items():
+        sp = f"{path}.{key}"
+        if isinstance(key, bool) or not (isinstance(key, int) or (isinstance(key, str) and key.isascii() and key.isdigit())):
+            raise rd.fail(sp, "slot keys are robot ids")
+        sid = int(key)
+        if sid not in seen:
+            raise rd.fail(sp, f"no robot with id {sid}")
+        if sid == leader:
+            raise rd.fail(sp, "the leader has no slot")
+        s = rd.mapping(s, sp, {"L", "psi_deg"})
+        for k in ("L", "psi_deg"):
+            if k not in s:
+                raise rd.fail(f"{sp}.{k}", "missing")
+        slots[sid] = Slot(L=rd.number(s["L"], f"{sp}.L", 0.0), psi=math.radians(rd.number(s["psi_deg"], f"{sp}.psi_deg")))
+    return slots
 
 
 def _obstacle(rd: _Reader, d: Any, path: str) -> Obstacle:
@@ -442,36 +524,37 @@ def parse_scenario(data: Any, source: str = "<scenario>") -> Scenario:
 
     formation = None
     if "formation" in d and d["formation"] is not None:
-        f = rd.mapping(d["formation"], "formation", {"leader", "goal", "slots", "d_safe"})
+        f = rd.mapping(d["formation"], "formation", {"leader", "goal", "slots", "d_safe", "schedule"})
         for k in ("leader", "goal"):
             if k not in f:
                 raise rd.fail(f"formation.{k}", "missing")
         leader = rd.integer(f["leader"], "formation.leader", 0)
         if leader not in seen:
             raise rd.fail("formation.leader", f"no robot with id {leader}")
-        slots_d = f.get("slots", {}) or {}
-        if not isinstance(slots_d, dict):
-            raise rd.fail("formation.slots", f"expected a mapping of robot id to {{L, psi_deg}}, got {_kind(slots_d)}")
-        slots: dict[int, Slot] = {}
-        for key, s in slots_d.items():
-            sp = f"formation.slots.{key}"
-            if isinstance(key, bool) or not (isinstance(key, int) or (isinstance(key, str) and key.isascii() and key.isdigit())):
-                raise rd.fail(sp, "slot keys are robot ids")
-            sid = int(key)
-            if sid not in seen:
-                raise rd.fail(sp, f"no robot with id {sid}")
-            if sid == leader:
-                raise rd.fail(sp, "the leader has no slot")
-            s = rd.mapping(s, sp, {"L", "psi_deg"})
-            for k in ("L", "psi_deg"):
-                if k not in s:
-                    raise rd.fail(f"{sp}.{k}", "missing")
-            slots[sid] = Slot(L=rd.number(s["L"], f"{sp}.L", 0.0), psi=math.radians(rd.number(s["psi_deg"], f"{sp}.psi_deg")))
+        slots = _slots(rd, f.get("slots", {}) or {}, "formation.slots", seen, leader)
+        schedule: list[SlotChange] = []
+        sched = f.get("schedule") or []
+        if not isinstance(sched, list):
+            raise rd.fail("formation.schedule", f"expected a list of {{at, slots}}, got {_kind(sched)}")
+        for i, e in enumerate(sched):
+            ep = f"formation.schedule[{i}]"
+            e = rd.mapping(e, ep, {"at", "slots"})
+            for k in ("at", "slots"):
+                if k not in e:
+                    raise rd.fail(f"{ep}.{k}", "missing")
+            at = rd.number(e["at"], f"{ep}.at", 0.0, duration)
+            if schedule and at <= schedule[-1].at:
+                raise rd.fail(f"{ep}.at", f"must be later than the previous change ({schedule[-1].at:g} s), got {at:g}")
+            ch = _slots(rd, e["slots"], f"{ep}.slots", seen, leader)
+            if not ch:
+                raise rd.fail(f"{ep}.slots", "empty: name at least one follower")
+            schedule.append(SlotChange(at=at, slots=ch))
         formation = FormationConfig(
             leader=leader,
             goal=rd.vector(f["goal"], "formation.goal", 2),
             slots=slots,
             d_safe=rd.number(f.get("d_safe", 3.0), "formation.d_safe", 0.0),
+            schedule=tuple(schedule),
         )
         for i, r in enumerate(robots):
             want = "leader" if r.id == leader else "follower"

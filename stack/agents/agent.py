@@ -99,13 +99,13 @@ class Agent:
         self._fix: Fix | None = None
         self.fixes_used = 0
         policy_name = cfg.policy or self.robot.policy
-        self.policy = make_policy(policy_name, self.robot)
+        self.policy = make_policy(policy_name, self.robot, seed=seed * 1000 + self.id)
         p = self.robot.pid
         self.pid = PidPolicy(PidGains(k_v=p.k_v, k_w=p.k_w, k_i=p.k_i, k_d=p.k_d,
                                       v_cap=self.robot.v_max * (p.v_cruise if role == "leader" else 1.0)))
         self.decision = DecisionLayer(self.id, role, sc.formation, goal=self.robot.goal, radius=self.robot.radius,
                                       comm_range=self.robot.comm_range, scan_range=self.robot.lidar.range, dt=self.dt,
-                                      centre_heading=policy_name != "pid")
+                                      centre_heading=self.policy.hybrid and policy_name != "pid")
 
         # sensor and neighbour inboxes, filled by zenoh callbacks
         self._cv = threading.Condition()
@@ -363,12 +363,12 @@ class Agent:
         d_omin = obstacle_distance((pose.x, pose.y), pose.yaw, ranges, scan.angle_min, scan.angle_increment,
                                    scan.range_max, [n.predicted(now) for n in self.neighbours.values()],
                                    self.robot.radius)
-        dec = self.decision.decide(pose, now, self.neighbours, scans, d_omin)
+        dec = self.decision.decide(pose, now, self.neighbours, scans, d_omin, t_run=k * self.dt)
         if dec.obs is None:
             v, w = 0.0, 0.0
         else:
-            v, w = (self.policy if dec.use_network else self.pid).act(dec.obs)
-            if self.role == "leader":
+            v, w = (self.policy if dec.use_network or not self.policy.hybrid else self.pid).act(dec.obs)
+            if self.role == "leader" and self.policy.hybrid:
                 v = DecisionLayer.leader_speed(v, dec.d_rmax, self.cfg.scenario.formation.d_leader_slow)  # eq. (20)
 
         self.seq += 1

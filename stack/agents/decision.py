@@ -94,7 +94,10 @@ class DecisionLayer:
         self.centre_heading = centre_heading
         self.counts: dict[str, int] = {s: 0 for s in SITUATIONS}
 
-    def decide(self, pose, now: float, neighbours: dict[int, Neighbour], scans: np.ndarray, d_omin: float) -> Decision:
+    def decide(self, pose, now: float, neighbours: dict[int, Neighbour], scans: np.ndarray, d_omin: float,
+               t_run: float | None = None) -> Decision:
+        """``now``: the clock of the neighbours' stamps; ``t_run``: time since the run began (the
+        formation schedule's clock; defaults to ``now``)."""
         me = (pose.x, pose.y)
         others = [n.predicted(now) for n in neighbours.values()]
         dists = [math.hypot(o[0] - me[0], o[1] - me[1]) for o in others]
@@ -103,10 +106,11 @@ class DecisionLayer:
         rel = sorted(((d, _polar(me, pose.yaw, o)[1]) for d, o in zip(dists, others) if d <= self.comm_range), reverse=True)
         nb = np.array(rel, dtype=float).reshape(-1, 2)
 
-        def obs(target, alpha=None, gvel=(0.0, 0.0)) -> Observation:
+        def obs(target, alpha=None, gvel=(0.0, 0.0), target_yaw=None) -> Observation:
             d_g, a_g = _polar(me, pose.yaw, target)
             return Observation(d_g=d_g, alpha_g=a_g if alpha is None else alpha, v=pose.v, w=pose.w, neighbours=nb,
-                               scans=scans, goal_velocity=gvel, yaw=pose.yaw, scan_range=self.scan_range, dt=self.dt)
+                               scans=scans, goal_velocity=gvel, yaw=pose.yaw, scan_range=self.scan_range, dt=self.dt,
+                               target_yaw=target_yaw)
 
         f = self.formation
         if f is None:  # arrival-time peer: straight to its own goal
@@ -123,13 +127,15 @@ class DecisionLayer:
         if leader is None:
             return self._count(Decision("waiting", False, None, None, d_rmin, d_rmax, d_omin))
         lx, ly = leader.predicted(now)
-        slot = f.slots[self.id]
+        slot = f.slots_at(now if t_run is None else t_run)[self.id]  # formation.schedule switches the slots in time
         target = (lx + slot.L * math.cos(slot.psi), ly + slot.L * math.sin(slot.psi))  # eq. (3)
         gvel = (leader.v * math.cos(leader.yaw), leader.v * math.sin(leader.yaw))
         if min(d_rmin, d_omin) > d_safe:
-            return self._count(Decision("follower-1", False, obs(target, gvel=gvel), target, d_rmin, d_rmax, d_omin))
+            return self._count(Decision("follower-1", False, obs(target, gvel=gvel, target_yaw=leader.yaw), target,
+                                        d_rmin, d_rmax, d_omin))
         if d_rmin < d_safe and d_omin > d_safe:
-            return self._count(Decision("follower-2", True, obs(target, gvel=gvel), target, d_rmin, d_rmax, d_omin))
+            return self._count(Decision("follower-2", True, obs(target, gvel=gvel, target_yaw=leader.yaw), target,
+                                        d_rmin, d_rmax, d_omin))
         # situation 3: eq. (21) selects robots i with cos<p_L - p_F, p_i - p_F> > 0, eq. (22) their centre
         lv = (lx - me[0], ly - me[1])
         sel = [o for o in others if lv[0] * (o[0] - me[0]) + lv[1] * (o[1] - me[1]) > 0]
@@ -138,7 +144,8 @@ class DecisionLayer:
             alpha = _polar(me, pose.yaw, (xc, yc))[1]
         else:
             alpha = None
-        return self._count(Decision("follower-3", True, obs(target, alpha=alpha, gvel=gvel), target, d_rmin, d_rmax, d_omin))
+        return self._count(Decision("follower-3", True, obs(target, alpha=alpha, gvel=gvel, target_yaw=leader.yaw), target,
+                                    d_rmin, d_rmax, d_omin))
 
     def _count(self, d: Decision) -> Decision:
         self.counts[d.situation] += 1

@@ -83,3 +83,24 @@ def plot_distances(sc, t, dmin, dmax, dobs, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def plot_errors(sc, t, errors: dict, path: Path) -> None:
+    """Followers' slot errors along x and y over time (Deng Fig. 2b-c, 3b-e), schedule switches marked."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    for rid, (ex, ey) in sorted(errors.items()):
+        axes[0].plot(t, ex, label=f"follower {rid}")
+        axes[1].plot(t, ey, label=f"follower {rid}")
+    for ax, name in zip(axes, ("x", "y")):
+        for ch in sc.formation.schedule:
+            ax.axvline(ch.at, color="0.5", ls=":", lw=0.8)
+        ax.axhspan(-0.05, 0.05, color="tab:green", alpha=0.15, lw=0)
+        ax.set_xlabel("time [s]")
+        ax.set_title(f"{name} error (slot - position)")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("error [m]")
+    axes[0].legend(fontsize=8)
+    fig.suptitle(f"{sc.name}: formation errors (band: the 0.05 m of error_convergence_time_s)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

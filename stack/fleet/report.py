@@ -19,6 +19,8 @@ from ..scenario import Scenario
 from ..sim_bridge.geometry import distance_to_obstacles, pairwise_distances
 
 CONVERGED_M = 0.05  # error_convergence_time_s threshold per axis
+NEAR_OBSTACLE_M = 1.0  # a robot this close to an obstacle surface (clearance) is passing it
+RECOVERED_M = 0.1  # formation recovered: every follower within this of its slot
 
 
 def _f(x) -> float | None:
@@ -88,10 +90,9 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
         hit = np.nonzero(dl <= sc.success.goal_tolerance)[0]
         leader_time = float(t[hit[0]]) if len(hit) else None
         ok = np.ones(K, bool)
-        for rid, slot in f.slots.items():
+        for rid in f.slots:
             j = idx[rid]
-            sx = X[:, li] + slot.L * math.cos(slot.psi)
-            sy = Y[:, li] + slot.L * math.sin(slot.psi)
+            sx, sy = _slot_track(f, rid, t, X[:, li], Y[:, li])
             slot_xy[rid] = (sx, sy)
             live = alive[:, j] if rid in killed else np.ones(K, bool)
             err_all.append(np.hypot(X[live, j] - sx[live], Y[live, j] - sy[live]))
@@ -114,7 +115,8 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
         # arrival: first time within goal tolerance of the final target (the goal, or the slot at the goal)
         fx, fy = (gx[-1], gy[-1])
         if f is not None and rid != f.leader:
-            fx, fy = f.goal[0] + f.slots[rid].L * math.cos(f.slots[rid].psi), f.goal[1] + f.slots[rid].L * math.sin(f.slots[rid].psi)
+            last = f.final_slots[rid]
+            fx, fy = f.goal[0] + last.L * math.cos(last.psi), f.goal[1] + last.L * math.sin(last.psi)
         near = np.nonzero(np.hypot(X[:, j] - fx, Y[:, j] - fy) <= sc.success.goal_tolerance)[0]
         arrival = float(t[near[0]]) if len(near) else None
         arrivals.append(arrival)
@@ -143,6 +145,22 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
             "sensor_stale_stops": d.sensor_stale if d is not None else None,
             "alive_at_end": bool(alive[-1, j]),
         }
+
+    # recovery after obstacles: from the last step with a robot within NEAR_OBSTACLE_M of an obstacle's
+    # surface (clearance) until every live follower stays within RECOVERED_M of its slot
+    cleared_at = recovery = None
+    if f is not None and sc.obstacles and slot_xy:
+        near = (obs_d - radii[None, :] < NEAR_OBSTACLE_M).any(axis=1)
+        if near.any():
+            k0 = int(np.nonzero(near)[0][-1])
+            cleared_at = float(t[k0])
+            worst = np.zeros(K)
+            for rid, (sx, sy) in slot_xy.items():
+                j = idx[rid]
+                live = alive[:, j] if rid in killed else np.ones(K, bool)
+                worst = np.maximum(worst, np.where(live, np.hypot(X[:, j] - sx, Y[:, j] - sy), 0.0))
+            since = _converged_since(t[k0:], worst[k0:], RECOVERED_M)
+            recovery = None if since is None else since - cleared_at
 
     arrival_spread = None
     if f is None and all(a is not None for a in arrivals):
@@ -190,6 +208,9 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
         "connectivity": _f(connectivity),
         "formation_error_rms_m": _f(np.sqrt(np.mean(err ** 2))) if err.size else None,
         "arrival_spread_steps": arrival_spread,
+        "formation_switches_s": [ch.at for ch in f.schedule] if f is not None else [],
+        "obstacles_cleared_at_s": _f(cleared_at),
+        "formation_recovery_s": _f(recovery),
         "robots": robots,
         "comm": comm,
         "control_loop_ms": {"p50": _f(hist.percentile(50)), "p99": _f(hist.percentile(99)), "samples": hist.total},
@@ -202,10 +223,13 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
     }
     (out / "report.json").write_text(json.dumps(report, indent=2))
     if plots:
-        from .plots import plot_distances, plot_trajectories
+        from .plots import plot_distances, plot_errors, plot_trajectories
 
         plot_trajectories(sc, z, out / "trajectories.png")
         plot_distances(sc, t, dmin_t, dmax_t, dobs_t, out / "distances.png")
+        if slot_xy:
+            plot_errors(sc, t, {rid: (sx - X[:, idx[rid]], sy - Y[:, idx[rid]]) for rid, (sx, sy) in slot_xy.items()},
+                        out / "errors.png")
     return report
 
 
@@ -218,3 +242,15 @@ def _empty_report(sc: Scenario, wall: float, faults: list, crashed: list) -> dic
             "comm": {"sent": 0, "delivered": 0, "dropped_loss": 0, "dropped_range": 0},
             "control_loop_ms": {"p50": None, "p99": None}, "faults": faults, "crashed": crashed,
             "end_reason": "no world log"}
+
+
+def _slot_track(f, rid: int, t: np.ndarray, lx: np.ndarray, ly: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Follower ``rid``'s slot over time, eq. (3), with the formation schedule's switches."""
+    L = np.empty(len(t))
+    psi = np.empty(len(t))
+    times = [0.0] + [ch.at for ch in f.schedule]
+    for i, t0 in enumerate(times):
+        slot = f.slots_at(t0)[rid]
+        sel = t >= t0 - 1e-9
+        L[sel], psi[sel] = slot.L, slot.psi
+    return lx + L * np.cos(psi), ly + L * np.sin(psi)

@@ -9,6 +9,7 @@ from .base import Observation, Policy
 # name -> "module:factory"; a factory takes (robot_config, **kw) and returns a Policy.
 REGISTRY: dict[str, str] = {
     "pid": "stack.policies.factories:make_pid",
+    "aina": "stack.policies.factories:make_aina",
 }
 
 

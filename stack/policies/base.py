@@ -24,6 +24,7 @@ class Observation:
     scans: (k, beams) array, the last k lidar scans [m], newest last, o_z.
     goal_velocity: world-frame velocity of the target (a follower's slot moves with the leader).
     yaw: the robot's heading [rad] (to turn goal_velocity into the robot frame).
+    target_yaw: the leader's heading [rad, world frame] when the target is a follower's slot.
     scan_range: the lidar's maximum range [m].
     """
 
@@ -37,10 +38,14 @@ class Observation:
     yaw: float = 0.0
     scan_range: float = 5.0
     dt: float = 0.1
+    target_yaw: float | None = None  # heading of what the target follows (a follower's leader); None for a fixed goal
 
 
 class Policy(ABC):
     name = "base"
+    hybrid = True
+    """True: the policy is the "network" of Bai's hybrid strategy (PID drives in situation 1);
+    False: the policy drives in every situation (its paper has its own avoidance)."""
 
     @abstractmethod
     def act(self, obs: Observation) -> tuple[float, float]:

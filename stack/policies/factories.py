@@ -8,3 +8,10 @@ from .pid import PidGains, PidPolicy
 def make_pid(robot, **_) -> PidPolicy:
     p = robot.pid
     return PidPolicy(PidGains(k_v=p.k_v, k_w=p.k_w, k_i=p.k_i, k_d=p.k_d, v_cap=robot.v_max))
+
+
+def make_aina(robot, *, seed: int = 0, **_):
+    from .aina import AinaPolicy
+
+    return AinaPolicy(robot.aina, role=robot.role or "leader", radius=robot.radius, v_max=robot.v_max,
+                      lidar_fov=robot.lidar.fov, lidar_range=robot.lidar.range, seed=seed)

@@ -295,6 +295,6 @@ class WorldServer:
         with self._cv:
             alive = set(self.alive)
         errs = [np.hypot(*(np.array(slot_position((w.x[li], w.y[li]), slot)) - [w.x[w.index[r]], w.y[w.index[r]]]))
-                for r, slot in f.slots.items() if r in alive]
+                for r, slot in f.slots_at(self.t).items() if r in alive]
         settled = all(e < SETTLED_M for e in errs) and abs(w.v[li]) < 0.05
         return settled or self.t - arrived_at >= SETTLE_S, arrived_at
