@@ -38,6 +38,19 @@ BAD = [
     (lambda d: d["formation"]["slots"].pop(2), "formation.slots: follower 2 has no slot"),
     (lambda d: d["formation"].__setitem__("leader", 9), "formation.leader: no robot with id 9"),
     (lambda d: d["robots"][1].__setitem__("policy", "magic"), "robots[1].policy: expected one of pid, drl"),
+    (lambda d: d["formation"].__setitem__("schedule", {"at": 1}), "formation.schedule: expected a list of {at, slots}"),
+    (lambda d: d["formation"].__setitem__("schedule", [{"at": 1.0}]), "formation.schedule[0].slots: missing"),
+    (lambda d: d["formation"].__setitem__("schedule", [{"at": 99.0, "slots": {1: {"L": 1, "psi_deg": 0}}}]),
+     "formation.schedule[0].at: must be <= 25"),
+    (lambda d: d["formation"].__setitem__("schedule", [{"at": 5.0, "slots": {1: {"L": 1, "psi_deg": 0}}},
+                                                       {"at": 5.0, "slots": {2: {"L": 1, "psi_deg": 0}}}]),
+     "formation.schedule[1].at: must be later than the previous change (5 s), got 5"),
+    (lambda d: d["formation"].__setitem__("schedule", [{"at": 5.0, "slots": {0: {"L": 1, "psi_deg": 0}}}]),
+     "formation.schedule[0].slots.0: the leader has no slot"),
+    (lambda d: d["formation"].__setitem__("schedule", [{"at": 5.0, "slots": {}}]),
+     "formation.schedule[0].slots: empty"),
+    (lambda d: d["formation"].__setitem__("schedule", [{"at": 5.0, "slots": {3: {"L": 1}}}]),
+     "formation.schedule[0].slots.3.psi_deg: missing"),
     (lambda d: d["robots"][1].__setitem__("driver", "ros"), "robots[1].driver: expected one of sim, can"),
     (lambda d: d["robots"][3].__setitem__("id", 1), "robots[3].id: duplicate id 1"),
     (lambda d: d["robots"][0].__setitem__("role", "follower"), "robots[0].role: robot 0 is follower but formation.leader is 0"),
@@ -138,3 +151,14 @@ def test_fleet_listen_port_in_use_is_bad_input(diamond):
         port = s.getsockname()[1]
         proc = run_cli(["stack-fleet", "run", str(diamond), "--listen", f"tcp/127.0.0.1:{port}"], timeout=60)
     assert proc.returncode == 2 and "address in use" in proc.stderr, proc.stderr
+
+
+def test_formation_schedule_switches_slots_in_time():
+    d = scenario_dict()
+    d["formation"]["schedule"] = [{"at": 5.0, "slots": {1: {"L": 1.0, "psi_deg": 180}}},
+                                  {"at": 9.5, "slots": {2: {"L": 2.0, "psi_deg": 90}, 1: {"L": 3.0, "psi_deg": 0}}}]
+    f = parse_scenario(d).formation
+    assert f.slots_at(0.0) == f.slots and f.slots_at(4.99) == f.slots
+    at5 = f.slots_at(5.0)
+    assert at5[1].L == 1.0 and at5[2] == f.slots[2] and at5[3] == f.slots[3]  # a change keeps the followers it leaves out
+    assert f.final_slots[1].L == 3.0 and f.final_slots[2].L == 2.0 and f.final_slots[3] == f.slots[3]

@@ -15,7 +15,8 @@ from ..scenario import ScenarioError, load_scenario, with_overrides
 from .orchestrator import FleetConfig, run_fleet
 
 COLUMNS = ("scenario", "policy", "success", "sim_time_s", "leader_time_to_goal_s", "collisions", "min_robot_distance_m",
-           "max_robot_distance_m", "min_obstacle_distance_m", "formation_error_rms_m", "connectivity", "wall_time_s")
+           "max_robot_distance_m", "min_obstacle_distance_m", "formation_error_rms_m", "connectivity", "convergence_s",
+           "formation_recovery_s", "wall_time_s")
 
 
 def _cell(v) -> str:
@@ -24,6 +25,19 @@ def _cell(v) -> str:
     if isinstance(v, float):
         return f"{v:.2f}"
     return "-" if v is None else str(v)
+
+
+def convergence_cell(rep: dict) -> str | None:
+    """Followers' error_convergence_time_s x/y, counted from the last formation switch (Deng Tables 1-2)."""
+    t0 = max(rep.get("formation_switches_s") or [0.0])
+    cells = []
+    for rid, r in sorted(rep.get("robots", {}).items(), key=lambda kv: int(kv[0])):
+        if r.get("role") != "follower":
+            continue
+        c = r["error_convergence_time_s"]
+        xy = ["never" if c[a] is None else f"{max(0.0, c[a] - t0):.1f}" for a in ("x", "y")]
+        cells.append(f"{rid}: {xy[0]}/{xy[1]}")
+    return "; ".join(cells) or None
 
 
 def main(folder: Path, out: Path, seed: int | None = None) -> int:
@@ -49,7 +63,8 @@ def main(folder: Path, out: Path, seed: int | None = None) -> int:
         print(f"[{n}/{len(plan)}] {sc.name} with {pol} ...", file=sys.stderr, flush=True)
         code, rep = run_fleet(FleetConfig(scenario=run, out=dest, progress=sys.stderr.isatty()))
         row = {c: rep.get(c) for c in COLUMNS} | {"policy": pol, "exit": code, "reference": sc.bench.reference,
-                                                 "report": str(dest / "report.json")}
+                                                 "report": str(dest / "report.json"),
+                                                 "convergence_s": convergence_cell(rep)}
         rows.append(row)
     head = "| " + " | ".join(COLUMNS + ("paper",)) + " |"
     lines = [head, "|" + " --- |" * (len(COLUMNS) + 1)]
