@@ -15,7 +15,7 @@ import logging
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import zenoh
@@ -26,7 +26,6 @@ from ..comm.radio import config_from_scenario
 from ..drivers import Driver, DriverLimits, make_driver
 from ..estimation import EkfConfig, PoseEKF
 from ..policies import make_policy
-from ..policies.pid import PidGains, PidPolicy
 from ..scenario import Scenario, fix_due
 from .decision import DecisionLayer, Neighbour, obstacle_distance
 from .timing import LatencyHistogram
@@ -100,9 +99,7 @@ class Agent:
         self.fixes_used = 0
         policy_name = cfg.policy or self.robot.policy
         self.policy = make_policy(policy_name, self.robot, seed=seed * 1000 + self.id)
-        p = self.robot.pid
-        self.pid = PidPolicy(PidGains(k_v=p.k_v, k_w=p.k_w, k_i=p.k_i, k_d=p.k_d,
-                                      v_cap=self.robot.v_max * (p.v_cruise if role == "leader" else 1.0)))
+        self.pid = make_policy("pid", replace(self.robot, role=role))  # situation 1 of the hybrid strategy
         self.decision = DecisionLayer(self.id, role, sc.formation, goal=self.robot.goal, radius=self.robot.radius,
                                       comm_range=self.robot.comm_range, scan_range=self.robot.lidar.range, dt=self.dt,
                                       centre_heading=self.policy.hybrid and policy_name != "pid")

@@ -7,7 +7,8 @@ from .pid import PidGains, PidPolicy
 
 def make_pid(robot, **_) -> PidPolicy:
     p = robot.pid
-    return PidPolicy(PidGains(k_v=p.k_v, k_w=p.k_w, k_i=p.k_i, k_d=p.k_d, v_cap=robot.v_max))
+    v_cap = robot.v_max * (p.v_cruise if robot.role == "leader" else 1.0)  # the leader cruises
+    return PidPolicy(PidGains(k_v=p.k_v, k_w=p.k_w, k_i=p.k_i, k_d=p.k_d, v_cap=v_cap))
 
 
 def make_aina(robot, *, seed: int = 0, **_):
