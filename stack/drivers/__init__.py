@@ -12,6 +12,7 @@ from .base import Driver, DriverError, DriverLimits, Odometry
 # name -> "module:Class", imported lazily (python-can's BACKENDS style)
 BACKENDS: dict[str, str] = {
     "sim": "stack.drivers.sim:SimDriver",
+    "can": "stack.drivers.can:CanDriver",
 }
 
 

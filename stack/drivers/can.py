@@ -1,0 +1,420 @@
+"""``can``: a differential drive on two ODrive axes (CANSimple, firmware 0.6.x), over python-can.
+
+The left and right wheel each have an ODrive axis with its own node id. Opening clears the
+axes' errors, puts them in velocity control and closed loop, and waits until both
+heartbeats say so. A command becomes one ``Set_Input_Vel`` per axis (wheel kinematics with
+radius, track, gear and the direction of each wheel), resent every ``keepalive_period`` so
+the axes' watchdogs stay fed. A python-can ``Notifier`` decodes the axes' heartbeats and
+encoder estimates; ``read()`` returns the body speeds of the newest pair of estimates.
+
+A fault (a heartbeat missing for ``heartbeat_timeout``, an axis error, an axis leaving
+closed loop, a bus error) sends zero velocity and ``Estop`` to both axes and sets
+``fault`` to a one-line reason with the decoded error; the base class then sends no
+motion, and the driver stays faulted until it is closed and opened again.
+
+>>> cfg = CanConfig(interface="slcan", channel="/dev/ttyACM0", node_left=0, node_right=1)
+>>> drv = CanDriver(1, DriverLimits(1.0, 2.0), cfg)            # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field, fields, replace
+from typing import Any, Callable, Mapping
+
+import can
+
+from . import odrive
+from .base import Driver, DriverError, DriverLimits, Odometry
+
+log = logging.getLogger(__name__)
+
+TWO_PI = 2.0 * math.pi
+
+
+@dataclass(frozen=True)
+class CanConfig:
+    """Where the two ODrive axes are and what wheels they turn (defaults: a Clearpath Jackal's wheels)."""
+
+    interface: str = "socketcan"
+    """python-can interface name: ``socketcan`` on a robot, ``slcan`` for a USB-CAN adapter
+    (or the simulated one on a pseudo-terminal), ``virtual`` for in-process tests."""
+    channel: str = "can0"
+    """python-can channel: ``can0``, a serial device such as ``/dev/ttyACM0``, a virtual bus name."""
+    bitrate: int = 500_000
+    """[bit/s] CAN bitrate, given to interfaces that set it (``slcan``); socketcan takes it from ``ip link``."""
+    node_left: int = 0
+    """CANSimple node id (0..63) of the left wheel's axis."""
+    node_right: int = 1
+    """CANSimple node id (0..63) of the right wheel's axis."""
+    wheel_radius: float = 0.098
+    """[m] wheel radius."""
+    track_width: float = 0.37559
+    """[m] distance between the left and right wheel contact points."""
+    gear_ratio: float = 1.0
+    """motor turns per wheel turn (the ODrive measures the motor)."""
+    direction_left: int = 1
+    """+1 if a positive motor velocity turns the left wheel forward, else -1."""
+    direction_right: int = -1
+    """+1 if a positive motor velocity turns the right wheel forward, else -1 (mirrored motor: usual)."""
+    heartbeat_timeout: float = 0.3
+    """[s] a heartbeat older than this is a fault: 3 periods of the ODrive's default 100 ms."""
+    open_timeout: float = 1.0
+    """[s] how long opening waits for both axes to report CLOSED_LOOP_CONTROL without error."""
+    keepalive_period: float = 0.1
+    """[s] the last command is resent this often, feeding the axes' watchdogs (the vendor resends within 0.5 s)."""
+    input_mode: str = "VEL_RAMP"
+    """ODrive input mode for velocity control: ``VEL_RAMP`` (the axis ramps at its vel_ramp_rate) or ``PASSTHROUGH``."""
+    can_log: str | None = None
+    """Path of a python-can log of every frame sent and received (``.asc``, ``.blf``, ``.log``, ``.csv``...); None: no log."""
+    bus_options: Mapping[str, Any] = field(default_factory=dict)
+    """Further keyword arguments of ``can.Bus`` (e.g. ``{"sleep_after_open": 0}`` for slcan adapters that need no settling)."""
+
+    def __post_init__(self):
+        for n in (self.node_left, self.node_right):
+            if not 0 <= n <= odrive.MAX_NODE_ID:
+                raise ValueError(f"can driver: node id {n} out of range 0..{odrive.MAX_NODE_ID}")
+        if self.node_left == self.node_right:
+            raise ValueError(f"can driver: both wheels on node {self.node_left}")
+        if self.direction_left not in (1, -1) or self.direction_right not in (1, -1):
+            raise ValueError("can driver: wheel directions must be +1 or -1")
+        for name in ("wheel_radius", "track_width", "gear_ratio", "heartbeat_timeout", "open_timeout",
+                     "keepalive_period", "bitrate"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"can driver: {name} must be a positive number, not {value!r}")
+        if self.input_mode not in ("VEL_RAMP", "PASSTHROUGH"):
+            raise ValueError(f"can driver: input_mode must be VEL_RAMP or PASSTHROUGH, not {self.input_mode!r}")
+
+    # --- differential-drive kinematics (motor side in rev/s, as the ODrive counts) ----
+    def motor_velocities(self, v: float, w: float) -> tuple[float, float]:
+        """Body (v [m/s], w [rad/s]) -> (left, right) motor velocity [rev/s]."""
+        half = 0.5 * w * self.track_width
+        k = self.gear_ratio / (TWO_PI * self.wheel_radius)
+        return (v - half) * k * self.direction_left, (v + half) * k * self.direction_right
+
+    def body_velocity(self, left: float, right: float) -> tuple[float, float]:
+        """(left, right) motor velocity [rev/s] -> body (v [m/s], w [rad/s])."""
+        k = TWO_PI * self.wheel_radius / self.gear_ratio
+        vl, vr = left * self.direction_left * k, right * self.direction_right * k
+        return 0.5 * (vl + vr), (vr - vl) / self.track_width
+
+
+class _Axis:
+    """What the driver knows of one ODrive axis (guarded by the driver's state lock)."""
+
+    def __init__(self, side: str, node_id: int):
+        self.side = side
+        self.node_id = node_id
+        self.label = f"{side} axis (node {node_id})"
+        self.reset()
+
+    def reset(self) -> None:
+        self.heartbeats = 0
+        self.hb_time: float | None = None
+        self.error = 0
+        self.state = odrive.AxisState.UNDEFINED
+        self.active_errors: int | None = None  # Get_Error reply, when one came
+        self.disarm_reason: int | None = None
+        self.vel: float | None = None  # [rev/s] newest encoder estimate
+        self.fresh = False  # an estimate since the last odometry sample
+
+    def status(self) -> str:
+        return f"state {odrive.state_name(self.state)}, error {odrive.error_text(self.error)}"
+
+
+class _Receiver(can.Listener):
+    """The Notifier's listener: hands frames and bus errors to the driver."""
+
+    def __init__(self, driver: "CanDriver"):
+        self._driver = driver
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self._driver._on_frame(msg)
+
+    def on_error(self, exc: Exception) -> None:
+        self._driver._on_bus_error(exc)
+
+
+class CanDriver(Driver):
+    """Two ODrive axes (left, right wheel) on one CAN bus.
+
+    ``bus``: an already-made ``can.BusABC`` to use instead of opening ``config``'s interface
+    (tests: a ``virtual`` bus); it stays the caller's, who shuts it down. ``clock`` times the
+    command watchdog, the heartbeat timeout and the keepalive (the agent's clock: wall time,
+    or sim time in lock-step); ``stamp`` stamps the odometry. ``**params`` are CanConfig
+    fields (the scenario's driver settings) that override ``config``. ``session``, ``keys``
+    and ``on_malformed``/``on_odom`` are the agent's common driver arguments: the first two
+    are not used, ``on_malformed`` is told ``can/<counter>`` for each malformed frame and
+    ``on_odom`` gets each new odometry sample.
+    """
+
+    name = "can"
+
+    def __init__(self, robot_id: int, limits: DriverLimits, config: CanConfig | None = None, *,
+                 bus: can.BusABC | None = None, clock: Callable[[], float] = time.monotonic,
+                 stamp: Callable[[], float] = time.time, on_odom: Callable[[Odometry], None] | None = None,
+                 on_malformed: Callable[[str], None] | None = None, session: Any = None, keys: Any = None,
+                 **params):
+        super().__init__(robot_id, limits, clock)
+        config = config or CanConfig()
+        unknown = set(params) - {f.name for f in fields(CanConfig)}
+        if unknown:
+            raise ValueError(f"can driver: unknown settings {', '.join(sorted(unknown))}")
+        self.config = replace(config, **params) if params else config
+        self._given_bus = bus
+        self._stamp = stamp
+        self._on_odom = on_odom
+        self._on_malformed = on_malformed or (lambda key: None)
+        self.left = _Axis("left", self.config.node_left)
+        self.right = _Axis("right", self.config.node_right)
+        self._axes = {a.node_id: a for a in (self.left, self.right)}
+        self.counters: dict[str, int] = {}
+        self._bus: can.BusABC | None = None
+        self._notifier: can.Notifier | None = None
+        self._logger: can.Listener | None = None
+        self._state = threading.Condition()  # guards the axes, _latest, _armed, counters
+        self._tx_lock = threading.Lock()  # one sender at a time: bus and log
+        self._cmd_lock = threading.Lock()  # a command, a keepalive and a trip reach the wire whole and in order
+        self._latest: Odometry | None = None
+        self._armed = False  # supervising: both axes reached closed loop
+        self._motor_cmd = (0.0, 0.0)  # [rev/s] what the keepalive resends
+        self._next_keepalive = 0.0
+        self._supervisor: threading.Thread | None = None
+        self._halt = threading.Event()
+
+    # --- lifecycle --------------------------------------------------------------------
+    def _open(self) -> None:
+        cfg = self.config
+        self.fault = None
+        with self._state:
+            for a in self._axes.values():
+                a.reset()
+            self._latest = None
+            self._armed = False
+        self._motor_cmd = (0.0, 0.0)
+        self._halt.clear()
+        try:
+            self._bus = self._given_bus or can.Bus(interface=cfg.interface, channel=cfg.channel, bitrate=cfg.bitrate,
+                                                   **dict(cfg.bus_options))
+        except (can.CanError, OSError, ValueError, ImportError) as e:
+            raise DriverError(f"can driver {self.robot_id}: cannot open {cfg.interface} {cfg.channel}: {e}") from e
+        try:
+            if cfg.can_log:
+                self._logger = can.Logger(cfg.can_log)
+            self._notifier = can.Notifier(self._bus, [_Receiver(self)], timeout=0.05)
+            self._start_axes()
+        except BaseException:
+            self._teardown()
+            raise
+        self._next_keepalive = self._clock() + cfg.keepalive_period
+        self._supervisor = threading.Thread(target=self._supervise, name=f"can-supervisor-{self.robot_id}", daemon=True)
+        self._supervisor.start()
+
+    def _start_axes(self) -> None:
+        """Clear errors, velocity mode, closed loop; wait until both heartbeats confirm it."""
+        cfg = self.config
+        with self._state:
+            seen = {n: a.heartbeats for n, a in self._axes.items()}
+        mode = odrive.InputMode[cfg.input_mode]
+        for node in self._axes:
+            self._tx(odrive.encode("Clear_Errors", node, Identify=0))
+            self._tx(odrive.encode("Set_Controller_Mode", node, Control_Mode=odrive.ControlMode.VELOCITY_CONTROL,
+                                   Input_Mode=mode))
+            self._tx(odrive.encode("Set_Axis_State", node, Axis_Requested_State=odrive.AxisState.CLOSED_LOOP_CONTROL))
+
+        def ready(a: _Axis) -> bool:
+            return a.heartbeats > seen[a.node_id] and a.state == odrive.AxisState.CLOSED_LOOP_CONTROL and a.error == 0
+
+        deadline = time.monotonic() + cfg.open_timeout
+        with self._state:
+            while not all(ready(a) for a in self._axes.values()):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    why = "; ".join(f"{a.label}: " + (a.status() if a.heartbeats > seen[a.node_id] else "no heartbeat")
+                                    for a in self._axes.values() if not ready(a))
+                    raise DriverError(f"can driver {self.robot_id}: axes not in CLOSED_LOOP_CONTROL after "
+                                      f"{cfg.open_timeout:g} s on {self._bus_name()}: {why}")
+                self._state.wait(left)
+            self._armed = True
+            now = self._clock()
+            for a in self._axes.values():
+                a.hb_time = now
+
+    def _close(self) -> None:
+        self._halt.set()
+        if self._supervisor is not None and self._supervisor is not threading.current_thread():
+            self._supervisor.join(timeout=1.0)
+        self._supervisor = None
+        with self._state:
+            self._armed = False
+        try:
+            for node in self._axes:
+                self._tx(odrive.encode("Set_Axis_State", node, Axis_Requested_State=odrive.AxisState.IDLE))
+        except (can.CanError, OSError) as e:
+            log.warning("can driver %s: IDLE on close failed: %s", self.robot_id, e)
+        self._teardown()
+
+    def _teardown(self) -> None:
+        """Stop the notifier and the log; shut the bus down if this driver made it."""
+        if self._notifier is not None:
+            self._notifier.stop(timeout=1.0)
+            self._notifier = None
+        with self._tx_lock:
+            if self._logger is not None:
+                self._logger.stop()
+                self._logger = None
+        if self._bus is not None and self._bus is not self._given_bus:
+            self._bus.shutdown()
+        self._bus = None
+
+    # --- commands ---------------------------------------------------------------------
+    def _send(self, v: float, w: float) -> None:
+        """One Set_Input_Vel per axis. A faulted driver sends nothing: the axes are in Estop."""
+        with self._cmd_lock:
+            if self.fault is not None:
+                return
+            self._motor_cmd = self.config.motor_velocities(v, w)
+            try:
+                self._send_motor()
+            except (can.CanError, OSError) as e:
+                raise DriverError(f"can driver {self.robot_id}: send failed on {self._bus_name()}: {e}") from e
+
+    def _send_motor(self) -> None:
+        """Put the current motor command on the wire (caller holds _cmd_lock)."""
+        self._next_keepalive = self._clock() + self.config.keepalive_period
+        for axis, vel in zip((self.left, self.right), self._motor_cmd):
+            self._tx(odrive.encode("Set_Input_Vel", axis.node_id, Input_Vel=vel, Input_Torque_FF=0.0))
+
+    def _tx(self, msg: can.Message) -> None:
+        with self._tx_lock:
+            if self._bus is None:
+                raise can.CanOperationError("bus is closed")
+            msg.timestamp = time.time()
+            msg.is_rx = False
+            self._bus.send(msg)
+            if self._logger is not None:
+                self._logger(msg)
+        self._count("tx")
+
+    # --- receiving (Notifier thread) --------------------------------------------------
+    def _on_frame(self, msg: can.Message) -> None:
+        """Decode one frame; anything unexpected is counted, nothing raises."""
+        if self._logger is not None:
+            with self._tx_lock:
+                if self._logger is not None:
+                    self._logger(msg)
+        try:
+            f = odrive.decode(msg, self._axes)
+        except odrive.ProtocolError as e:
+            return self._malformed(e.kind)
+        axis = self._axes[f.node_id]
+        if f.remote:  # requests come from hosts; another host on our axes
+            return self._malformed("unexpected")
+        if f.name == "Heartbeat":
+            self._on_heartbeat(axis, f.signals)
+        elif f.name == "Get_Encoder_Estimates":
+            self._on_encoder(axis, f.signals)
+        elif f.name == "Get_Error":
+            with self._state:
+                axis.active_errors, axis.disarm_reason = f.signals["Active_Errors"], f.signals["Disarm_Reason"]
+        else:  # a command to our axes from someone else, or a reply we do not use
+            self._malformed("unexpected")
+
+    def _on_heartbeat(self, axis: _Axis, s: dict) -> None:
+        with self._state:
+            axis.heartbeats += 1
+            axis.hb_time = self._clock()
+            axis.error, axis.state = int(s["Axis_Error"]), int(s["Axis_State"])
+            armed = self._armed
+            self._count("heartbeat")
+            self._state.notify_all()
+        if not armed:
+            return
+        if axis.error:
+            self._trip(f"{axis.label}: axis error {odrive.error_text(axis.error)} "
+                       f"(state {odrive.state_name(axis.state)})")
+        elif axis.state != odrive.AxisState.CLOSED_LOOP_CONTROL:
+            self._trip(f"{axis.label}: left CLOSED_LOOP_CONTROL, now {odrive.state_name(axis.state)}")
+
+    def _on_encoder(self, axis: _Axis, s: dict) -> None:
+        vel = s["Vel_Estimate"]
+        if not math.isfinite(vel):
+            return self._malformed("bad_value")
+        with self._state:
+            axis.vel, axis.fresh = vel, True
+            self._count("encoder")
+            if not (self.left.fresh and self.right.fresh):
+                return
+            self.left.fresh = self.right.fresh = False
+            v, w = self.config.body_velocity(self.left.vel, self.right.vel)
+            odo = self._latest = Odometry(v=v, w=w, stamp=self._stamp())
+        if self._on_odom is not None:
+            self._on_odom(odo)
+
+    def _on_bus_error(self, exc: Exception) -> None:
+        self._count("bus_error")
+        self._trip(f"CAN bus error on {self._bus_name()}: {exc}")
+        self._halt.wait(0.1)  # the Notifier retries at once: do not spin on a dead bus
+
+    def _read(self) -> Odometry | None:
+        with self._state:
+            return self._latest
+
+    # --- supervision ------------------------------------------------------------------
+    def _supervise(self) -> None:
+        """Heartbeat timeout and keepalive, on the driver's clock."""
+        cfg = self.config
+        period = min(0.02, cfg.heartbeat_timeout / 5, cfg.keepalive_period / 2)
+        while not self._halt.wait(period):
+            now = self._clock()
+            with self._state:
+                stale = [(a, now - a.hb_time) for a in self._axes.values()
+                         if a.hb_time is not None and now - a.hb_time > cfg.heartbeat_timeout]
+            if stale:
+                self._trip("; ".join(f"{a.label}: no heartbeat for {age:.2f} s" for a, age in stale))
+            if self.fault is None and now >= self._next_keepalive:
+                try:
+                    with self._cmd_lock:
+                        if self.fault is None:
+                            self._send_motor()
+                except (can.CanError, OSError) as e:
+                    self._count("tx_error")
+                    self._trip(f"keepalive send failed on {self._bus_name()}: {e}")
+
+    def _trip(self, reason: str) -> None:
+        """First fault wins: zero velocity and Estop to both axes, then report."""
+        with self._cmd_lock:
+            with self._state:
+                if self.fault is not None or not self._armed:
+                    return
+                self.fault = reason
+                self._motor_cmd = (0.0, 0.0)
+            log.error("can driver %s: fault: %s: zero velocity and Estop sent", self.robot_id, reason)
+            for node in self._axes:
+                try:
+                    self._tx(odrive.encode("Set_Input_Vel", node, Input_Vel=0.0, Input_Torque_FF=0.0))
+                    self._tx(odrive.encode("Estop", node))
+                    self._count("estop")
+                except (can.CanError, OSError) as e:  # the bus itself may be what failed
+                    log.error("can driver %s: Estop to node %d failed: %s", self.robot_id, node, e)
+
+    # --- helpers ----------------------------------------------------------------------
+    def _count(self, key: str) -> None:
+        with self._state:
+            self.counters[key] = self.counters.get(key, 0) + 1
+
+    def _malformed(self, kind: str) -> None:
+        self._count(kind)
+        self._on_malformed(f"can/{kind}")
+
+    def _bus_name(self) -> str:
+        if self._bus is not None and self._bus is self._given_bus:
+            return self._bus.channel_info
+        return f"{self.config.interface} {self.config.channel}"
+
+
+__all__ = ["CanConfig", "CanDriver"]
