@@ -185,6 +185,35 @@ class FormationConfig:
     def final_slots(self) -> dict[int, Slot]:
         return self.slots_at(math.inf)
 
+    def resolve(self, t: float, dead: set[int] | frozenset[int] = frozenset()) -> tuple[int | None, dict[int, Slot]]:
+        """(leader, slots) at sim time ``t`` once the robots in ``dead`` are gone.
+
+        Failover rule, the same in every agent, the world and the report: while the leader
+        lives nothing changes but the dead followers' slots; when it is gone the live robot
+        with the lowest id leads, and every other follower keeps its place in the shape:
+        its new slot is its old slot minus the new leader's old slot (eq. (3) offsets, so the
+        formation keeps its geometry around the robot that now leads). (None, {}) if nobody
+        is left.
+        """
+        slots = self.slots_at(t)
+        if self.leader not in dead:
+            return self.leader, {r: s for r, s in slots.items() if r not in dead}
+        live = sorted(r for r in slots if r not in dead)
+        if not live:
+            return None, {}
+        new = live[0]
+        ox, oy = _offset(slots[new])
+        out = {}
+        for r in live[1:]:
+            x, y = _offset(slots[r])
+            dx, dy = x - ox, y - oy
+            out[r] = Slot(L=math.hypot(dx, dy), psi=math.atan2(dy, dx))
+        return new, out
+
+
+def _offset(s: Slot) -> tuple[float, float]:
+    return s.L * math.cos(s.psi), s.L * math.sin(s.psi)
+
 
 @dataclass(frozen=True)
 class SuccessConfig:
@@ -662,3 +691,16 @@ def slot_position(leader_xy: tuple[float, float], slot: Slot) -> tuple[float, fl
 def summary(sc: Scenario) -> dict:
     """The resolved config as plain data, for logs."""
     return asdict(sc) | {"raw": None}
+
+
+FAULT_KINDS = ("kill", "freeze", "restart")
+
+
+def parse_fault_at(text: str) -> tuple[int, float]:
+    """``ID@SECONDS`` of ``--kill/--freeze/--restart`` (ValueError with the expected form)."""
+    import re
+
+    m = re.fullmatch(r"(\d+)@(\d+(?:\.\d*)?)", text.strip())
+    if not m:
+        raise ValueError(f"expected ID@SECONDS, e.g. 2@30, got {text!r}")
+    return int(m.group(1)), float(m.group(2))

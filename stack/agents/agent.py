@@ -12,6 +12,7 @@ Every way out (SIGINT/SIGTERM, ``--steps``, an error) commands zero velocity fir
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections import deque
@@ -32,6 +33,7 @@ from .timing import LatencyHistogram
 
 log = logging.getLogger("stack.agent")
 
+JUMP_TOLERANCE_M = 2.0  # a neighbour's state may move this much beyond what its v_max allows (estimate corrections)
 STALE_AFTER_S = 3.0  # a neighbour not heard for this long is left out of the formation logic
 SENSOR_STALE_S = 0.5  # real time: no new scan and odometry for this long -> zero velocity
 
@@ -97,8 +99,9 @@ class Agent:
         self.estimator = PoseEKF(x, y, yaw, self.ekf_config)
         self._fix: Fix | None = None
         self.fixes_used = 0
-        policy_name = cfg.policy or self.robot.policy
-        self.policy = make_policy(policy_name, self.robot, seed=seed * 1000 + self.id)
+        policy_name = self.policy_name = cfg.policy or self.robot.policy
+        self.policy_seed = seed * 1000 + self.id
+        self.policy = make_policy(policy_name, self.robot, seed=self.policy_seed)
         self.pid = make_policy("pid", replace(self.robot, role=role))  # situation 1 of the hybrid strategy
         self.decision = DecisionLayer(self.id, role, sc.formation, goal=self.robot.goal, radius=self.robot.radius,
                                       comm_range=self.robot.comm_range, scan_range=self.robot.lidar.range, dt=self.dt,
@@ -109,12 +112,16 @@ class Agent:
         self._scan: Scan | None = None
         self._scan_arrival = 0.0
         self._odom_arrival = 0.0
-        self._clock: Clock | None = None
+        self._clocks: dict[int, Clock] = {}  # lock-step: the newest clocks by step (answered, dead)
         self._inbox: list[State] = []
         self._states_seen: dict[int, int] = {}  # sender -> newest step seen on the wire
         self._awaited: set[int] = set()  # lock-step: senders whose state of _awaited_step we wait for
         self._awaited_step = -1
-        self._dead: set[int] = set()
+        self._dead: set[int] = set()  # real time: robots whose liveliness token is gone
+        self.gone: set[int] = set()  # robots this agent has dropped (lock-step: the world's Clock.dead)
+        self.noticed: dict[int, float] = {}  # robot id -> run time at which this agent last dropped it (gone or stale)
+        self.led_since: float | None = None  # failover: run time this agent took over as leader
+        self.rejected_states = 0  # neighbours' states that claimed an impossible jump
         self.neighbours: dict[int, Neighbour] = {}
         self.scans: deque[np.ndarray] = deque(maxlen=3)
 
@@ -171,7 +178,9 @@ class Agent:
         if m is None:
             return
         with self._cv:
-            self._clock = m
+            self._clocks[m.step] = m
+            for old in [s for s in self._clocks if s < m.step - 5]:
+                del self._clocks[old]
             if self.cfg.lockstep:
                 self.sim_now = max(self.sim_now, m.t)
             self._cv.notify_all()
@@ -282,10 +291,10 @@ class Agent:
                     return None
                 self._cv.wait(0.05)
             k = scan.step
-            clock = self._clock
-            if lockstep and clock is not None and clock.step == k:
+            clock = self._clocks.get(k)
+            if lockstep and clock is not None and self.step >= 0:  # a (re)started agent has nobody to wait for
                 self._awaited_step = k - 1
-                self._awaited = {i for i in clock.answered if i != self.id and i not in self._dead
+                self._awaited = {i for i in clock.answered if i != self.id and i not in clock.dead
                                  and self._states_seen.get(i, -1) < k - 1}
                 t_end = time.monotonic() + 1.0
                 while self._awaited and time.monotonic() < t_end:
@@ -301,6 +310,8 @@ class Agent:
         """Lock-step: step k's gyro rate and (when one is due) position fix are in too; zenoh keeps
         order per key, not across keys, so waiting on the scan alone would race."""
         if self.driver.has_imu and odo.wz_imu is None:
+            return False
+        if k not in self._clocks:  # its answered and dead lists
             return False
         if fix_due(self.robot, k, self.dt):
             return self._fix is not None and self._fix.step == k
@@ -320,11 +331,27 @@ class Agent:
                 self._inbox = [m for m in self._inbox if m.step >= k]
             else:
                 take, self._inbox = self._inbox, []
-            dead = set(self._dead)
+            clock = self._clocks.get(k)
+            # who is gone: in lock-step the world's list of step k (every agent drops a robot at the same
+            # step); in real time our own liveliness subscription
+            dead = set(clock.dead) if self.cfg.lockstep and clock is not None else set(self._dead)
+        dead.discard(self.id)
+        t_run = k * self.dt
+        for rid in dead - self.gone:
+            self.noticed[rid] = t_run
+            log.info("agent %d: robot %d gone at t=%.1f s", self.id, rid, t_run)
+        for rid in self.gone - dead:
+            log.info("agent %d: robot %d is back at t=%.1f s", self.id, rid, t_run)
+        self.gone = dead
+        first = self.step < 0
         self.step = k
 
         # estimator (filterpy EKF): the rates measured over the period just ended, then the motion
         # over it (eq. 1), then an absolute fix if one came (see stack/estimation/ekf.py for the order)
+        if first and odo.pose is not None:
+            # (re)start: the estimate begins where the base's own odometry says it is (after a restart
+            # mid-run that is not the scenario's start pose)
+            self.estimator = PoseEKF(*odo.pose, self.ekf_config)
         ekf = self.estimator
         if odo.step > self._odo_step:
             n = 1 if self._odo_step < 0 else min(odo.step - self._odo_step, 5)
@@ -349,10 +376,15 @@ class Agent:
             if m.id in dead:
                 continue
             old = self.neighbours.get(m.id)
-            if old is None or m.seq > old.seq:
-                self.neighbours[m.id] = Neighbour(m.id, m.role, m.x, m.y, m.yaw, m.v, m.w, m.stamp, m.seq)
+            if old is not None and (m.stamp, m.seq) <= (old.stamp, old.seq):
+                continue  # older than what we have (a restarted sender's seq starts again; its stamps do not)
+            if old is not None and not self._plausible(old, m):
+                self.rejected_states += 1
+                continue
+            self.neighbours[m.id] = Neighbour(m.id, m.role, m.x, m.y, m.yaw, m.v, m.w, m.stamp, m.seq)
         for nid in [i for i, n in self.neighbours.items() if now - n.stamp > STALE_AFTER_S]:
-            del self.neighbours[nid]
+            del self.neighbours[nid]  # silent too long (frozen, or out of range): out of the formation logic,
+            self.noticed[nid] = t_run  # and its body is an obstacle to the lidar like any other
 
         ranges = np.asarray(scan.ranges, dtype=float)
         self.scans.append(ranges)
@@ -360,7 +392,9 @@ class Agent:
         d_omin = obstacle_distance((pose.x, pose.y), pose.yaw, ranges, scan.angle_min, scan.angle_increment,
                                    scan.range_max, [n.predicted(now) for n in self.neighbours.values()],
                                    self.robot.radius)
-        dec = self.decision.decide(pose, now, self.neighbours, scans, d_omin, t_run=k * self.dt)
+        dec = self.decision.decide(pose, now, self.neighbours, scans, d_omin, t_run=t_run, dead=dead)
+        if self.decision.role != self.role:
+            self._take_role(self.decision.role, t_run)
         if dec.obs is None:
             v, w = 0.0, 0.0
         else:
@@ -379,6 +413,26 @@ class Agent:
         if k % 10 == 0:
             self._publish_diag("running")
 
+    def _plausible(self, old: Neighbour, m: State) -> bool:
+        """A state may not claim a jump faster than its robot can drive (plus room for estimate
+        corrections): a teleport is a broken or hostile sender, dropped and counted."""
+        try:
+            v_max = self.cfg.scenario.robot(m.id).v_max
+        except Exception:  # noqa: BLE001 - an id outside the scenario: nothing to judge by
+            v_max = self.robot.v_max
+        dt = max(m.stamp - old.stamp, self.dt)
+        return math.hypot(m.x - old.x, m.y - old.y) <= 1.5 * v_max * dt + JUMP_TOLERANCE_M
+
+    def _take_role(self, role: str, t_run: float) -> None:
+        """Failover: the formation's rule made this robot the leader (or a follower again)."""
+        log.warning("agent %d: now %s at t=%.1f s", self.id, role, t_run)
+        self.role = role
+        if role == "leader" and self.led_since is None:
+            self.led_since = t_run
+        robot = replace(self.robot, role=role)
+        self.policy = make_policy(self.policy_name, robot, seed=self.policy_seed)
+        self.pid = make_policy("pid", robot)
+
     def _publish_diag(self, state: str) -> None:
         c = self.radio.counters
         with self._cv:
@@ -390,5 +444,6 @@ class Agent:
                  situations={k: v for k, v in self.decision.counts.items() if v}, fixes_used=self.fixes_used,
                  fixes_rejected=self.estimator.rejected_fixes, inputs_rejected=self.estimator.rejected_nan,
                  sensor_stale=self.sensor_stale,
-                 fault=self.fault)
+                 fault=self.fault, noticed=dict(self.noticed), led_since=self.led_since,
+                 rejected_states=self.rejected_states)
         self._diag_pub.put(encode(d))

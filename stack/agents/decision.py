@@ -95,9 +95,11 @@ class DecisionLayer:
         self.counts: dict[str, int] = {s: 0 for s in SITUATIONS}
 
     def decide(self, pose, now: float, neighbours: dict[int, Neighbour], scans: np.ndarray, d_omin: float,
-               t_run: float | None = None) -> Decision:
+               t_run: float | None = None, dead: set[int] | frozenset[int] = frozenset()) -> Decision:
         """``now``: the clock of the neighbours' stamps; ``t_run``: time since the run began (the
-        formation schedule's clock; defaults to ``now``)."""
+        formation schedule's clock; defaults to ``now``); ``dead``: robots known to be gone (the
+        formation's failover rule may make this robot the leader: ``self.role`` follows it)."""
+        t_run = now if t_run is None else t_run
         me = (pose.x, pose.y)
         others = [n.predicted(now) for n in neighbours.values()]
         dists = [math.hypot(o[0] - me[0], o[1] - me[1]) for o in others]
@@ -116,6 +118,8 @@ class DecisionLayer:
         if f is None:  # arrival-time peer: straight to its own goal
             return self._count(Decision("peer", False, obs(self.goal), self.goal, d_rmin, d_rmax, d_omin))
         d_safe = f.d_safe
+        leader_id, slots = f.resolve(t_run, dead)
+        self.role = "leader" if leader_id == self.id else "follower"
         if self.role == "leader":
             d_g = math.hypot(f.goal[0] - me[0], f.goal[1] - me[1])
             m = min(d_rmin, d_omin)
@@ -123,11 +127,11 @@ class DecisionLayer:
                 return self._count(Decision("leader-1", False, obs(f.goal), f.goal, d_rmin, d_rmax, d_omin))
             return self._count(Decision("leader-2", True, obs(f.goal), f.goal, d_rmin, d_rmax, d_omin))
 
-        leader = neighbours.get(f.leader)
-        if leader is None:
+        leader = neighbours.get(leader_id)
+        if leader is None or self.id not in slots:
             return self._count(Decision("waiting", False, None, None, d_rmin, d_rmax, d_omin))
         lx, ly = leader.predicted(now)
-        slot = f.slots_at(now if t_run is None else t_run)[self.id]  # formation.schedule switches the slots in time
+        slot = slots[self.id]  # formation.schedule switches the slots in time; failover re-assigns them
         target = (lx + slot.L * math.cos(slot.psi), ly + slot.L * math.sin(slot.psi))  # eq. (3)
         gvel = (leader.v * math.cos(leader.yaw), leader.v * math.sin(leader.yaw))
         if min(d_rmin, d_omin) > d_safe:

@@ -57,13 +57,17 @@ class CmdVel(_Msg):
 
 
 class Odom(_Msg):
-    """``.../odom``: wheel odometry, body-frame speeds measured by the encoders."""
+    """``.../odom``: wheel odometry, body-frame speeds measured by the encoders, and the pose the
+    base integrated from them (as a real base's odometry topic carries; None if it has none)."""
 
     id: int
     step: int
     stamp: float
     v: float
     w: float
+    x: float | None = None
+    y: float | None = None
+    yaw: float | None = None
 
 
 class Imu(_Msg):
@@ -119,6 +123,26 @@ class Clock(_Msg):
     dt: float
     answered: list[int] = []
     lockstep: bool = True
+    dead: list[int] = []  # robots whose agents are gone (killed or left) as of this step
+
+
+class FaultRequest(_Msg):
+    """``stack/<fleet>/world/fault``: the world asks whoever started the agents to inject a fault at
+    step ``step`` (kill: SIGKILL, freeze: SIGSTOP, restart: start the agent again). Driven by the
+    world's own clock so lock-step runs with faults stay repeatable."""
+
+    step: int
+    t: float
+    kind: str
+    ids: list[int]
+
+
+class FaultAck(_Msg):
+    """``stack/<fleet>/world/fault_ack``: the request of ``step`` was carried out (``done``: the ids)."""
+
+    step: int
+    kind: str
+    done: list[int] = []
 
 
 class Truth(_Msg):
@@ -162,6 +186,9 @@ class Diag(_Msg):
     inputs_rejected: int = 0  # NaN/inf/negative inputs the estimator dropped
     sensor_stale: int = 0  # real time: times the robot was stopped because its sensors went stale
     fault: str = ""
+    noticed: dict[int, float] = {}  # robot id -> sim time this agent dropped it (gone)
+    led_since: float | None = None  # sim time this agent took over as leader (failover)
+    rejected_states: int = 0  # neighbours' states that claimed an impossible jump
 
 
 _ENCODER = msgspec.msgpack.Encoder()

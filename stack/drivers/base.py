@@ -38,6 +38,7 @@ class Odometry:
     stamp: float
     step: int = -1
     wz_imu: float | None = None  # gyro yaw rate, where the base has one
+    pose: tuple[float, float, float] | None = None  # the base's own dead-reckoned (x, y, yaw), where it has one
 
 
 @dataclass(frozen=True)

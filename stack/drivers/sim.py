@@ -63,7 +63,8 @@ class SimDriver(Driver):
         if m is None or not self._mine(m, sample):
             return
         with self._data_lock:
-            odo = self._latest = Odometry(v=m.v, w=m.w, stamp=m.stamp, step=m.step)
+            pose = (m.x, m.y, m.yaw) if m.x is not None and m.y is not None and m.yaw is not None else None
+            odo = self._latest = Odometry(v=m.v, w=m.w, stamp=m.stamp, step=m.step, pose=pose)
         if self._on_odom is not None:
             self._on_odom(odo)
 

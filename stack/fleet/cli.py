@@ -11,7 +11,7 @@ from pathlib import Path
 
 from ..comm.session import EndpointError, SessionError, check_endpoint, port_free
 from ..policies import available as available_policies
-from ..scenario import DRIVERS, POLICIES, ScenarioError, load_scenario, with_overrides
+from ..scenario import DRIVERS, FAULT_KINDS, POLICIES, ScenarioError, load_scenario, parse_fault_at, with_overrides
 from .orchestrator import EXIT_BAD_INPUT, FleetConfig, run_fleet, sigterm_as_interrupt
 
 
@@ -21,11 +21,11 @@ class _Parser(argparse.ArgumentParser):
         sys.exit(EXIT_BAD_INPUT)
 
 
-def _kill(text: str) -> tuple[int, float]:
-    m = re.fullmatch(r"(\d+)@(\d+(?:\.\d*)?)", text.strip())
-    if not m:
-        raise argparse.ArgumentTypeError(f"expected ID@SECONDS, e.g. 2@30, got {text!r}")
-    return int(m.group(1)), float(m.group(2))
+def _fault_at(text: str) -> tuple[int, float]:
+    try:
+        return parse_fault_at(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def _prob(text: str) -> float:
@@ -70,7 +70,11 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--realtime", action="store_true", help="run on the wall clock (default: lock-step, as fast as agents answer)")
     r.add_argument("--gui", action="store_true", help="pybullet GUI")
     r.add_argument("--listen", help="router endpoint, e.g. tcp/127.0.0.1:7447 (default: a free loopback port)")
-    r.add_argument("--kill", type=_kill, action="append", default=[], metavar="ID@T", help="SIGKILL robot ID's agent at sim time T")
+    r.add_argument("--kill", type=_fault_at, action="append", default=[], metavar="ID@T", help="SIGKILL robot ID's agent at sim time T")
+    r.add_argument("--freeze", type=_fault_at, action="append", default=[], metavar="ID@T",
+                   help="SIGSTOP robot ID's agent at sim time T (a hung process: its driver watchdog stops the robot)")
+    r.add_argument("--restart", type=_fault_at, action="append", default=[], metavar="ID@T",
+                   help="start robot ID's agent again at sim time T (after a --kill or --freeze: it rejoins)")
     r.add_argument("--no-progress", action="store_true", help="no live progress line")
     r.add_argument("--no-plots", action="store_true", help="skip trajectories.png and distances.png")
     r.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
@@ -92,9 +96,14 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
     if drivers:
         raise ScenarioError(f"{a.scenario}: driver {', '.join(drivers)} is not implemented yet (available: sim)")
     ids = set(sc.ids)
-    for rid, t in a.kill:
-        if rid not in ids:
-            raise ScenarioError(f"--kill {rid}@{t:g}: no robot with id {rid} in {a.scenario}")
+    faults = []
+    for kind in FAULT_KINDS:
+        for rid, t in getattr(a, kind):
+            if rid not in ids:
+                raise ScenarioError(f"--{kind} {rid}@{t:g}: no robot with id {rid} in {a.scenario}")
+            if t > sc.duration:
+                raise ScenarioError(f"--{kind} {rid}@{t:g}: after the run's end ({sc.duration:g} s)")
+            faults.append((kind, rid, t))
     if a.listen:
         check_endpoint(a.listen)
         if not re.fullmatch(r"tcp/[^#?]+:\d+", a.listen):
@@ -106,7 +115,7 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
     out = a.out or Path("runs") / sc.name
     if out.exists() and not out.is_dir():
         raise ScenarioError(f"--out {out}: exists and is not a folder")
-    return FleetConfig(scenario=sc, out=out, realtime=a.realtime, gui=a.gui, listen=a.listen, kills=a.kill,
+    return FleetConfig(scenario=sc, out=out, realtime=a.realtime, gui=a.gui, listen=a.listen, faults=faults,
                        progress=not a.no_progress, plots=not a.no_plots)
 
 

@@ -22,7 +22,8 @@ from pathlib import Path
 import zenoh
 
 from ..comm import Keys, receive
-from ..comm.messages import Clock, Diag, State, WorldStatus
+from ..comm import encode
+from ..comm.messages import Clock, Diag, FaultAck, FaultRequest, State, WorldStatus
 from ..comm.session import SessionConfig, free_tcp_endpoint, open_session
 from ..scenario import Scenario
 from .report import build_report
@@ -47,8 +48,10 @@ class FleetConfig:
     """Open pybullet's GUI."""
     listen: str | None = None
     """Router endpoint; a free loopback port when None."""
-    kills: list[tuple[int, float]] = field(default_factory=list)
-    """(robot id, sim time): SIGKILL that agent then."""
+    faults: list[tuple[str, int, float]] = field(default_factory=list)
+    """(kind, robot id, sim time): ``kill`` (SIGKILL the agent), ``freeze`` (SIGSTOP it), ``restart``
+    (start it again). The world asks for each at the first step at or after its time and waits
+    until it is done, so lock-step runs with faults are repeatable."""
     fleet: str | None = None
     """Fleet name (key prefix); derived from the out folder when None."""
     progress: bool = True
@@ -75,6 +78,7 @@ class _Proc:
         self.p = subprocess.Popen(argv, stdout=self.log_file, stderr=subprocess.STDOUT, env=env, start_new_session=True)
         self.asked_to_stop = False
         self.killed_at: float | None = None
+        self.frozen = False
 
     def poll(self) -> int | None:
         return self.p.poll()
@@ -108,10 +112,14 @@ class _Proc:
 
 
 def _stop_all(procs: list[_Proc], timeout: float) -> None:
-    """SIGTERM every running process at once (agents: zero velocity on the way out), then wait; SIGKILL stragglers."""
+    """SIGTERM every running process at once (agents: zero velocity on the way out), then wait; SIGKILL stragglers.
+    A frozen (SIGSTOPped) agent is let go on first, so it can command its zero too."""
     running = [pr for pr in procs if pr.poll() is None]
     for pr in running:
         pr.asked_to_stop = True
+        if pr.frozen:
+            pr.signal(signal.SIGCONT)
+            pr.frozen = False
         pr.signal(signal.SIGTERM)
     for pr in running:
         try:
@@ -152,7 +160,9 @@ class Monitor:
         self.estimates: dict[int, list[tuple[int, float, float]]] = {}
         self.situation: dict[int, str] = {}
         self.malformed = 0
+        self.fault_requests: list[FaultRequest] = []
         self._subs = [
+            session.declare_subscriber(keys.world("fault"), self._on(FaultRequest, self.fault_requests.append)),
             session.declare_subscriber(keys.world("clock"), self._on(Clock, self._clock)),
             session.declare_subscriber(keys.world("status"), self._on(WorldStatus, self._status)),
             session.declare_subscriber(keys.all_robots("diag"), self._on(Diag, self._diag)),
@@ -227,29 +237,60 @@ def run_fleet(cfg: FleetConfig) -> tuple[int, dict]:
                 world_argv.append("--realtime")
             if cfg.gui:
                 world_argv.append("--gui")
+            for kind, rid, at in cfg.faults:
+                world_argv += ["--" + kind, f"{rid}@{at:g}"]
             procs["world"] = _Proc("world", world_argv, out / "logs" / "world.log", env)
-            for r in sc.robots:
+            def start_agent(r, log_name: str) -> _Proc:
                 argv = [py, "-m", "stack.agents", "--id", str(r.id), "--scenario", str(resolved), "--connect", endpoint,
                         "--fleet", fleet, "--log-level", "INFO"]
                 if r.role:
                     argv += ["--role", r.role]
                 if not cfg.realtime:
                     argv.append("--lockstep")
-                procs[f"agent-{r.id}"] = _Proc(f"agent {r.id}", argv, out / "logs" / f"agent-{r.id}.log", env)
+                return _Proc(f"agent {r.id}", argv, out / "logs" / log_name, env)
 
-            pending_kills = sorted(cfg.kills, key=lambda k: k[1])
+            for r in sc.robots:
+                procs[f"agent-{r.id}"] = start_agent(r, f"agent-{r.id}.log")
+            ack_pub = session.declare_publisher(keys.world("fault_ack"), congestion_control=zenoh.CongestionControl.BLOCK)
+            wanted = {(kind, rid): at for kind, rid, at in cfg.faults}
+            retired: list[_Proc] = []  # agents replaced by a restart
             progress = _Progress(sc, enabled=cfg.progress)
             while True:
                 time.sleep(0.05)
                 with mon.lock:
                     t, status = mon.t, mon.status
+                    requests, mon.fault_requests[:] = list(mon.fault_requests), []
                 progress.update(t, time.monotonic() - wall0)
-                while pending_kills and t >= pending_kills[0][1]:
-                    rid, at = pending_kills.pop(0)
-                    pr = procs[f"agent-{rid}"]
-                    pr.killed_at = t
-                    pr.signal(signal.SIGKILL)
-                    faults.append({"robot": rid, "kind": "killed", "at_s": at, "sim_time_s": t})
+                for req in requests:  # the world asks, we do, we answer (it waits for the answer)
+                    done = []
+                    for rid in req.ids:
+                        name = f"agent-{rid}"
+                        if name not in procs or (req.kind, rid) not in wanted:
+                            continue
+                        pr = procs[name]
+                        if req.kind == "kill":
+                            pr.killed_at = req.t
+                            pr.signal(signal.SIGKILL)
+                            pr.p.wait(5)
+                        elif req.kind == "freeze":
+                            pr.frozen = True
+                            pr.signal(signal.SIGSTOP)
+                        elif req.kind == "restart":
+                            if pr.poll() is None:  # still running (e.g. frozen): that one goes first
+                                pr.killed_at = req.t
+                                if pr.frozen:
+                                    pr.signal(signal.SIGCONT)
+                                pr.signal(signal.SIGKILL)
+                                pr.p.wait(5)
+                            retired.append(pr)
+                            n = sum(1 for x in retired if x.name == pr.name)
+                            procs[name] = start_agent(sc.robot(rid), f"agent-{rid}.restart{n}.log")
+                        else:
+                            continue
+                        done.append(rid)
+                        faults.append({"robot": rid, "kind": {"kill": "killed", "freeze": "frozen", "restart": "restarted"}[req.kind],
+                                       "at_s": wanted[(req.kind, rid)], "sim_time_s": req.t, "step": req.step})
+                    ack_pub.put(encode(FaultAck(step=req.step, kind=req.kind, done=done)))
                 for name, pr in procs.items():
                     rc = pr.poll()
                     if rc is not None and not pr.asked_to_stop and pr.killed_at is None and name != "world" \
@@ -267,6 +308,9 @@ def run_fleet(cfg: FleetConfig) -> tuple[int, dict]:
             # stop in order: agents (zero velocity on the way out), then the world, then the router
             agents = [pr for n, pr in procs.items() if n.startswith("agent-")]
             _stop_all(agents, timeout=10)
+            for pr in retired:
+                pr.close()
+            ack_pub.undeclare()
             for pr in agents:
                 rc = pr.poll()
                 if pr.killed_at is None and rc not in (0, None) and not any(c["process"] == pr.name for c in crashed):

@@ -64,11 +64,11 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
     alive = z["alive"]
     K, N = X.shape
     radii = np.array([sc.robot(r).radius for r in ids])
-    killed = {f["robot"] for f in faults}
     f = sc.formation
 
     # distances and collisions
-    dmin_t, dmax_t = pairwise_distances(X, Y)
+    dmin_t, _ = pairwise_distances(X, Y)  # a dead robot's body is still there to collide with
+    _, dmax_t = pairwise_distances(X, Y, alive)  # how far apart the live ones spread
     rr = 0
     if N > 1:
         for a in range(N):
@@ -78,48 +78,57 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
     ro = _entries(obs_d < radii[None, :]) if sc.obstacles else 0
     dobs_t = obs_d.min(axis=1)
 
-    # formation: slots from the leader's true position, eq. (3)
+    # formation: who leads and every follower's slot at each step, from the leader's true position,
+    # eq. (3), with the schedule and the failover rule (FormationConfig.resolve) as the agents apply them
     robots: dict[str, dict] = {}
-    err_all = []
-    slot_xy: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     leader_time = None
     connectivity = None
+    lead = np.full(K, -1)
+    TX, TY = np.full((K, N), np.nan), np.full((K, N), np.nan)  # each robot's target: the goal or its slot
     if f is not None:
-        li = idx[f.leader]
-        dl = np.hypot(X[:, li] - f.goal[0], Y[:, li] - f.goal[1])
-        hit = np.nonzero(dl <= sc.success.goal_tolerance)[0]
-        leader_time = float(t[hit[0]]) if len(hit) else None
         ok = np.ones(K, bool)
-        for rid in f.slots:
-            j = idx[rid]
-            sx, sy = _slot_track(f, rid, t, X[:, li], Y[:, li])
-            slot_xy[rid] = (sx, sy)
-            live = alive[:, j] if rid in killed else np.ones(K, bool)
-            err_all.append(np.hypot(X[live, j] - sx[live], Y[live, j] - sy[live]))
-            within = np.hypot(X[:, j] - X[:, li], Y[:, j] - Y[:, li]) <= sc.robot(rid).comm_range
-            ok &= within | ~live
+        for k in range(K):
+            dead = {ids[j] for j in np.nonzero(~alive[k])[0]}
+            leader, slots = f.resolve(float(t[k]), dead)
+            if leader is None:
+                continue
+            li = idx[leader]
+            lead[k] = leader
+            TX[k, li], TY[k, li] = f.goal
+            for rid, sl in slots.items():
+                j = idx[rid]
+                TX[k, j], TY[k, j] = X[k, li] + sl.L * math.cos(sl.psi), Y[k, li] + sl.L * math.sin(sl.psi)
+                ok[k] &= math.hypot(X[k, j] - X[k, li], Y[k, j] - Y[k, li]) <= sc.robot(rid).comm_range
+        lj = np.array([idx[int(r)] if r >= 0 else 0 for r in lead])
+        d_goal = np.hypot(X[np.arange(K), lj] - f.goal[0], Y[np.arange(K), lj] - f.goal[1])
+        hit = np.nonzero((lead >= 0) & (d_goal <= sc.success.goal_tolerance))[0]
+        leader_time = float(t[hit[0]]) if len(hit) else None
         connectivity = float(ok.mean())
-    err = np.concatenate(err_all) if err_all else np.zeros(0)
+    else:
+        for j, rid in enumerate(ids):
+            TX[:, j], TY[:, j] = sc.robot(rid).goal
+    following = np.zeros((K, N), bool)
+    if f is not None:
+        following = ~np.isnan(TX) & (lead[:, None] != np.array(ids)[None, :]) & ~_frozen(faults, t, ids)
+    err = np.hypot(X - TX, Y - TY)[following]
+    slot_xy = {rid: (np.where(following[:, j], TX[:, j], np.nan), np.where(following[:, j], TY[:, j], np.nan))
+               for j, rid in enumerate(ids) if following[:, j].any()}
 
     arrivals = []
     for rid in ids:
         j = idx[rid]
         seg = np.hypot(np.diff(X[:, j]), np.diff(Y[:, j]))
-        if f is not None and rid == f.leader:
-            gx, gy = np.full(K, f.goal[0]), np.full(K, f.goal[1])
-        elif f is not None:
-            gx, gy = slot_xy[rid]
-        else:
-            gx, gy = np.full(K, sc.robot(rid).goal[0]), np.full(K, sc.robot(rid).goal[1])
-        ex, ey = gx - X[:, j], gy - Y[:, j]
+        live = ~np.isnan(TX[:, j])  # steps at which the robot had a target (not gone)
+        ex, ey = TX[:, j] - X[:, j], TY[:, j] - Y[:, j]
         # arrival: first time within goal tolerance of the final target (the goal, or the slot at the goal)
-        fx, fy = (gx[-1], gy[-1])
-        if f is not None and rid != f.leader:
-            last = f.final_slots[rid]
-            fx, fy = f.goal[0] + last.L * math.cos(last.psi), f.goal[1] + last.L * math.sin(last.psi)
-        near = np.nonzero(np.hypot(X[:, j] - fx, Y[:, j] - fy) <= sc.success.goal_tolerance)[0]
+        fx, fy = TX[-1, j], TY[-1, j]
+        if f is not None and following[-1, j]:
+            li = idx[int(lead[-1])]
+            fx, fy = TX[-1, j] - X[-1, li] + f.goal[0], TY[-1, j] - Y[-1, li] + f.goal[1]
+        near = np.nonzero(np.hypot(X[:, j] - fx, Y[:, j] - fy) <= sc.success.goal_tolerance)[0] if live.any() else []
         arrival = float(t[near[0]]) if len(near) else None
         arrivals.append(arrival)
+        ex, ey, tj = ex[live], ey[live], t[live]
         est = estimates.get(rid, [])
         rmse = None
         if est:
@@ -136,13 +145,16 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
             "driver": sc.robot(rid).driver,
             "path_length_m": _f(seg.sum()),
             "arrival_time_s": _f(arrival),
-            "error_convergence_time_s": {"x": _f(_converged_since(t, ex, CONVERGED_M)), "y": _f(_converged_since(t, ey, CONVERGED_M))},
-            "final_error_m": _f(math.hypot(ex[-1], ey[-1])),
+            "error_convergence_time_s": {"x": _f(_converged_since(tj, ex, CONVERGED_M)) if len(tj) else None,
+                                         "y": _f(_converged_since(tj, ey, CONVERGED_M)) if len(tj) else None},
+            "final_error_m": _f(math.hypot(ex[-1], ey[-1])) if len(tj) else None,
             "estimator_rmse_m": _f(rmse),
             "situations": dict(d.situations) if d is not None else {},
             "fixes": {"used": d.fixes_used, "rejected": d.fixes_rejected} if d is not None else None,
             "estimator_inputs_rejected": d.inputs_rejected if d is not None else None,
             "sensor_stale_stops": d.sensor_stale if d is not None else None,
+            "states_rejected": d.rejected_states if d is not None else None,
+            "led_since_s": d.led_since if d is not None else None,
             "alive_at_end": bool(alive[-1, j]),
         }
 
@@ -154,11 +166,7 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
         if near.any():
             k0 = int(np.nonzero(near)[0][-1])
             cleared_at = float(t[k0])
-            worst = np.zeros(K)
-            for rid, (sx, sy) in slot_xy.items():
-                j = idx[rid]
-                live = alive[:, j] if rid in killed else np.ones(K, bool)
-                worst = np.maximum(worst, np.where(live, np.hypot(X[:, j] - sx, Y[:, j] - sy), 0.0))
+            worst = np.where(following, np.hypot(X - TX, Y - TY), 0.0).max(axis=1)
             since = _converged_since(t[k0:], worst[k0:], RECOVERED_M)
             recovery = None if since is None else since - cleared_at
 
@@ -186,9 +194,11 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
     if f is not None:
         reached = leader_time is not None and leader_time <= max_time
     else:
-        reached = all(a is not None and a <= max_time for a, rid in zip(arrivals, ids) if rid not in killed)
+        reached = all(a is not None and a <= max_time for a, rid in zip(arrivals, ids) if alive[-1, idx[rid]])
     collided = (rr + ro) > 0
     success = bool(reached and not (sc.success.no_collisions and collided) and not crashed)
+
+    faults = _fault_details(faults, diags, f)
 
     report = {
         "scenario": sc.name,
@@ -244,13 +254,35 @@ def _empty_report(sc: Scenario, wall: float, faults: list, crashed: list) -> dic
             "end_reason": "no world log"}
 
 
-def _slot_track(f, rid: int, t: np.ndarray, lx: np.ndarray, ly: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Follower ``rid``'s slot over time, eq. (3), with the formation schedule's switches."""
-    L = np.empty(len(t))
-    psi = np.empty(len(t))
-    times = [0.0] + [ch.at for ch in f.schedule]
-    for i, t0 in enumerate(times):
-        slot = f.slots_at(t0)[rid]
-        sel = t >= t0 - 1e-9
-        L[sel], psi[sel] = slot.L, slot.psi
-    return lx + L * np.cos(psi), ly + L * np.sin(psi)
+def _fault_details(faults: list, diags: dict, f) -> list:
+    """Each kill or freeze with how long every other agent took to drop the robot (``noticed_s``) and,
+    for the leader, who took over and how long after the fault it commanded as leader."""
+    out = []
+    for fault in faults:
+        fault = dict(fault)
+        rid, t0 = fault["robot"], fault.get("sim_time_s")
+        if fault["kind"] in ("killed", "frozen", "crashed") and t0 is not None:
+            fault["noticed_s"] = {str(a): round(d.noticed[rid] - t0, 3) for a, d in sorted(diags.items())
+                                  if a != rid and rid in d.noticed and d.noticed[rid] >= t0 - 1e-9}
+            if f is not None and fault["kind"] != "frozen":
+                took = sorted((d.led_since, a) for a, d in diags.items()
+                              if a != rid and d.led_since is not None and d.led_since >= t0 - 1e-9)
+                if took:
+                    fault["new_leader"] = took[0][1]
+                    fault["takeover_s"] = round(took[0][0] - t0, 3)
+        out.append(fault)
+    return out
+
+
+def _frozen(faults: list, t: np.ndarray, ids: list[int]) -> np.ndarray:
+    """(K, N): the robot's agent was frozen (--freeze) and not yet restarted: out of the formation."""
+    out = np.zeros((len(t), len(ids)), bool)
+    for fault in sorted(faults, key=lambda x: x.get("sim_time_s") or 0.0):
+        if fault.get("robot") not in ids or fault.get("sim_time_s") is None:
+            continue
+        j = ids.index(fault["robot"])
+        if fault["kind"] == "frozen":
+            out[t >= fault["sim_time_s"] - 1e-9, j] = True
+        elif fault["kind"] == "restarted":
+            out[t >= fault["sim_time_s"] - 1e-9, j] = False
+    return out

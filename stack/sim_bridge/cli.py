@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from ..comm.session import EndpointError, SessionConfig, SessionError, check_endpoint, open_session
-from ..scenario import ScenarioError, load_scenario
+from ..scenario import FAULT_KINDS, ScenarioError, load_scenario, parse_fault_at
 from .server import WorldConfig, WorldServer
 
 log = logging.getLogger("stack.world")
@@ -45,6 +45,9 @@ def cli(argv: list[str] | None = None) -> int:
     ap.add_argument("--lockstep-timeout", type=float, default=2.0)
     ap.add_argument("--no-stop-early", action="store_true", help="run the whole duration even when the task is done")
     ap.add_argument("--log-level", default="WARNING")
+    for kind in FAULT_KINDS:
+        ap.add_argument(f"--{kind}", type=_fault_at, action="append", default=[], metavar="ID@T",
+                        help=f"ask for a {kind} of robot ID's agent at sim time T (on world/fault)")
     a = ap.parse_args(argv)
     logging.basicConfig(level=a.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
@@ -55,5 +58,13 @@ def cli(argv: list[str] | None = None) -> int:
         return 2
     cfg = WorldConfig(scenario=sc, connect=a.connect, fleet=a.fleet, out=a.out, realtime=a.realtime, gui=a.gui,
                       wait_agents_s=a.wait_agents, lockstep_timeout_s=a.lockstep_timeout, duration=a.duration,
-                      stop_early=not a.no_stop_early)
+                      stop_early=not a.no_stop_early,
+                      faults=[(kind, rid, t) for kind in FAULT_KINDS for rid, t in getattr(a, kind)])
     return main(cfg)
+
+
+def _fault_at(text: str) -> tuple[int, float]:
+    try:
+        return parse_fault_at(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None

@@ -24,7 +24,7 @@ import numpy as np
 import zenoh
 
 from ..comm import Keys, MessageError, decode, encode
-from ..comm.messages import Clock, CmdVel, Fix, Imu, Odom, Scan, Truth, WorldStatus
+from ..comm.messages import Clock, CmdVel, FaultAck, FaultRequest, Fix, Imu, Odom, Scan, Truth, WorldStatus
 from ..scenario import Scenario, fix_due, slot_position
 from .world import World
 
@@ -58,6 +58,11 @@ class WorldConfig:
     """Sim time limit; default the scenario's duration."""
     stop_early: bool = True
     """End once the task is done (leader at goal and formation settled, or every peer at its goal)."""
+    faults: list[tuple[str, int, float]] = field(default_factory=list)
+    """(kind, robot id, sim time): faults to inject (kill, freeze, restart), asked of the orchestrator
+    on ``world/fault`` at the first step at or after that time."""
+    fault_timeout_s: float = 30.0
+    """How long to wait (wall) for a fault to be carried out (ack; for a restart, the agent's token)."""
     stop: threading.Event = field(default_factory=threading.Event)
 
 
@@ -71,7 +76,10 @@ class WorldServer:
         self.ids = self.world.ids
         self._cv = threading.Condition()
         self.alive: set[int] = set()
+        self.dead: set[int] = set()  # agents gone (killed, crashed or left); announced in every Clock
         self.unresponsive: set[int] = set()
+        self.acks: dict[tuple[int, str], list[int]] = {}
+        self._pending_faults = sorted(cfg.faults, key=lambda f: f[2])
         self.cmds: dict[int, dict[int, tuple[float, float]]] = {}  # step -> id -> (v, w)
         self.last_cmd: dict[int, tuple[float, float, float, int]] = {}  # id -> (v, w, sim t received, step)
         self.malformed = 0
@@ -106,13 +114,55 @@ class WorldServer:
             return
         with self._cv:
             if sample.kind == zenoh.SampleKind.DELETE:
+                if rid in self.alive:
+                    self.events.append({"t": self.t, "robot": rid, "event": "left"})
                 self.alive.discard(rid)
-                self.events.append({"t": self.t, "robot": rid, "event": "left"})
+                if self.k > 0:
+                    self.dead.add(rid)
             else:
                 if rid not in self.alive and self.k > 0:
                     self.events.append({"t": self.t, "robot": rid, "event": "joined"})
                 self.alive.add(rid)
+                self.dead.discard(rid)
             self._cv.notify_all()
+
+    def _on_ack(self, sample: zenoh.Sample) -> None:
+        try:
+            m = decode(sample.payload.to_bytes(), FaultAck)
+        except MessageError:
+            with self._cv:
+                self.malformed += 1
+            return
+        with self._cv:
+            self.acks[(m.step, m.kind)] = list(m.done)
+            self._cv.notify_all()
+
+    def _inject_faults(self, fault_pub) -> None:
+        """Ask for the faults due at this step and wait until they are carried out, so every agent sees
+        them at the same step (lock-step runs with faults stay repeatable)."""
+        due: dict[str, list[int]] = {}
+        while self._pending_faults and self._pending_faults[0][2] <= self.t + 1e-9:
+            kind, rid, _ = self._pending_faults.pop(0)
+            due.setdefault(kind, []).append(rid)
+        for kind, ids in due.items():
+            fault_pub.put(encode(FaultRequest(step=self.k, t=self.t, kind=kind, ids=ids)))
+            deadline = time.monotonic() + self.cfg.fault_timeout_s
+            with self._cv:
+                while (self.k, kind) not in self.acks and time.monotonic() < deadline and not self.cfg.stop.is_set():
+                    self._cv.wait(0.05)
+                done = self.acks.pop((self.k, kind), None)
+                if done is None:
+                    log.warning("world: step %d: nobody carried out %s %s", self.k, kind, ids)
+                    self.events.append({"t": self.t, "robots": ids, "event": f"{kind} not carried out"})
+                    continue
+                self.events.append({"t": self.t, "robots": done, "event": kind})
+                if kind == "kill":
+                    self.alive -= set(done)
+                    self.dead |= set(done)
+                elif kind == "restart":
+                    while not set(done) <= self.alive and time.monotonic() < deadline and not self.cfg.stop.is_set():
+                        self._cv.wait(0.05)
+                    self.unresponsive -= set(done)
 
     # --- run ---------------------------------------------------------------------------
     def run(self) -> dict:
@@ -124,14 +174,16 @@ class WorldServer:
         clock_pub = s.declare_publisher(k.world("clock"), congestion_control=block)
         truth_pub = s.declare_publisher(k.world("truth"), congestion_control=block)
         status_pub = s.declare_publisher(k.world("status"), congestion_control=block)
+        fault_pub = s.declare_publisher(k.world("fault"), congestion_control=block)
         subs = [s.declare_subscriber(k.all_robots("cmd_vel"), self._on_cmd),
+                s.declare_subscriber(k.world("fault_ack"), self._on_ack),
                 s.liveliness().declare_subscriber(k.all_alive, self._on_alive, history=True)]
         token = s.liveliness().declare_token(k.world("alive"))
         try:
             status_pub.put(encode(WorldStatus(state="waiting")))
             self._wait_for_agents()
             status_pub.put(encode(WorldStatus(state="running")))
-            result = self._loop(pubs, clock_pub, truth_pub)
+            result = self._loop(pubs, clock_pub, truth_pub, fault_pub)
             status_pub.put(encode(WorldStatus(state="done", t=self.t, why=result["end_reason"])))
             # let the agents stop (their final zero commands arrive) before we report what we saw last
             self.linger(10.0)
@@ -153,7 +205,7 @@ class WorldServer:
                     raise TimeoutError(f"world: robots {missing} never came up within {self.cfg.wait_agents_s:.0f} s")
                 self._cv.wait(0.1)
 
-    def _loop(self, pubs, clock_pub, truth_pub) -> dict:
+    def _loop(self, pubs, clock_pub, truth_pub, fault_pub) -> dict:
         sc, w, dt = self.sc, self.world, self.sc.dt
         duration = self.cfg.duration or sc.duration
         n_steps = int(round(duration / dt))
@@ -165,9 +217,12 @@ class WorldServer:
         while True:
             self.t = self.k * dt
             stamp = self.t if not self.cfg.realtime else time.time()
+            if self._pending_faults:
+                self._inject_faults(fault_pub)
 
             with self._cv:
                 alive_now = set(self.alive)
+                dead_now = sorted(self.dead)
             log_rows["t"].append(self.t)
             for key, arr in (("x", w.x), ("y", w.y), ("yaw", w.yaw), ("v", w.v), ("w", w.w)):
                 log_rows[key].append(arr.copy())
@@ -188,12 +243,13 @@ class WorldServer:
                 break
 
             # the step goes on: its clock and sensors go out (none for a step that is not run)
-            clock_pub.put(encode(Clock(step=self.k, t=self.t, dt=dt, answered=answered, lockstep=not self.cfg.realtime)))
+            clock_pub.put(encode(Clock(step=self.k, t=self.t, dt=dt, answered=answered, lockstep=not self.cfg.realtime,
+                                       dead=dead_now)))
             scans = w.lidar()
             for rid in self.ids:
                 i = w.index[rid]
-                v, om = w.odometry(rid)
-                pubs[(rid, "odom")].put(encode(Odom(id=rid, step=self.k, stamp=stamp, v=v, w=om)))
+                v, om, (ox, oy, oyaw) = w.odometry(rid, dt)
+                pubs[(rid, "odom")].put(encode(Odom(id=rid, step=self.k, stamp=stamp, v=v, w=om, x=ox, y=oy, yaw=oyaw)))
                 pubs[(rid, "imu")].put(encode(Imu(id=rid, step=self.k, stamp=stamp, wz=w.gyro(rid))))
                 robot = sc.robots[i]
                 if fix_due(robot, self.k, dt):
@@ -287,14 +343,17 @@ class WorldServer:
             d = np.hypot(w.x - goals[:, 0], w.y - goals[:, 1])
             return bool((d <= tol).all()), arrived_at
         f = sc.formation
-        li = w.index[f.leader]
+        with self._cv:
+            dead = set(self.dead)
+        leader, slots = f.resolve(self.t, dead)  # after a failover the new leader must arrive
+        if leader is None:
+            return False, None
+        li = w.index[leader]
         if np.hypot(w.x[li] - f.goal[0], w.y[li] - f.goal[1]) > tol:
             return False, None
         if arrived_at is None:
             arrived_at = self.t
-        with self._cv:
-            alive = set(self.alive)
         errs = [np.hypot(*(np.array(slot_position((w.x[li], w.y[li]), slot)) - [w.x[w.index[r]], w.y[w.index[r]]]))
-                for r, slot in f.slots_at(self.t).items() if r in alive]
+                for r, slot in slots.items()]
         settled = all(e < SETTLED_M for e in errs) and abs(w.v[li]) < 0.05
         return settled or self.t - arrived_at >= SETTLE_S, arrived_at

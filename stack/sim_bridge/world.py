@@ -41,6 +41,8 @@ class World:
         self.v = np.zeros(n)
         self.w = np.zeros(n)
         self.radii = np.array([r.radius for r in scenario.robots], float)
+        # each base's dead-reckoned pose from its own (noisy) encoder speeds, as a real base's odometry reports it
+        self.odo_pose = np.column_stack([self.x, self.y, self.yaw]).astype(float)
         self.obstacle_bodies = [self._add_obstacle(o) for o in scenario.obstacles]
         self.robot_bodies = [self._add_robot(r) for r in scenario.robots]
         self._sync_bodies()
@@ -200,13 +202,18 @@ class World:
             pos += n
         return out
 
-    def odometry(self, rid: int) -> tuple[float, float]:
-        """Encoder speeds (v, w) with the robot's odometry noise."""
+    def odometry(self, rid: int, dt: float) -> tuple[float, float, tuple[float, float, float]]:
+        """Encoder speeds (v, w) with the robot's odometry noise, and the base's dead-reckoned pose
+        before them (x, y, yaw in the world frame; it then integrates them over ``dt``)."""
         i = self.index[rid]
         v_std, w_std = self.sc.robots[i].odom_noise
-        v = self.v[i] + (self.rng.normal(0, v_std) if v_std > 0 else 0.0)
-        w = self.w[i] + (self.rng.normal(0, w_std) if w_std > 0 else 0.0)
-        return float(v), float(w)
+        v = float(self.v[i] + (self.rng.normal(0, v_std) if v_std > 0 else 0.0))
+        w = float(self.w[i] + (self.rng.normal(0, w_std) if w_std > 0 else 0.0))
+        x, y, yaw = (float(a) for a in self.odo_pose[i])
+        mid = yaw + 0.5 * w * dt
+        self.odo_pose[i] = (x + v * math.cos(mid) * dt, y + v * math.sin(mid) * dt,
+                            math.atan2(math.sin(yaw + w * dt), math.cos(yaw + w * dt)))
+        return v, w, (x, y, yaw)
 
     def gyro(self, rid: int) -> float:
         i = self.index[rid]
