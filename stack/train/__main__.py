@@ -1,0 +1,5 @@
+"""``python -m stack.train`` is ``stack-train``."""
+
+from .cli import main
+
+raise SystemExit(main())
