@@ -112,7 +112,7 @@ class DecisionLayer:
             d_g, a_g = _polar(me, pose.yaw, target)
             return Observation(d_g=d_g, alpha_g=a_g if alpha is None else alpha, v=pose.v, w=pose.w, neighbours=nb,
                                scans=scans, goal_velocity=gvel, yaw=pose.yaw, scan_range=self.scan_range, dt=self.dt,
-                               target_yaw=target_yaw)
+                               target_yaw=target_yaw, x=pose.x, y=pose.y, target=(float(target[0]), float(target[1])))
 
         f = self.formation
         if f is None:  # arrival-time peer: straight to its own goal

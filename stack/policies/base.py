@@ -39,6 +39,9 @@ class Observation:
     scan_range: float = 5.0
     dt: float = 0.1
     target_yaw: float | None = None  # heading of what the target follows (a follower's leader); None for a fixed goal
+    x: float = 0.0  # the robot's own estimated position [m, world frame] (planners that keep a map need it)
+    y: float = 0.0
+    target: tuple[float, float] | None = None  # the target [m, world frame]: the goal, or a follower's slot
 
 
 class Policy(ABC):
