@@ -637,10 +637,27 @@ def load_scenario(path: str | Path) -> Scenario:
     return parse_scenario(data, str(p))
 
 
+BURST_P_BAD_GOOD = 0.3  # bursts of about 1 / 0.3 = 3.3 messages on average
+
+
+def burst_with_mean(loss: float) -> dict | None:
+    """A Gilbert-Elliott channel losing every message in the bad state, with the given mean loss:
+    p_bad = p_gb / (p_gb + p_bg) = loss  ->  p_gb = loss p_bg / (1 - loss)."""
+    if loss <= 0.0:
+        return None
+    if loss >= 1.0:
+        return {"p_good_bad": 1.0, "p_bad_good": 0.0, "loss_bad": 1.0}
+    return {"p_good_bad": min(1.0, loss * BURST_P_BAD_GOOD / (1.0 - loss)), "p_bad_good": BURST_P_BAD_GOOD, "loss_bad": 1.0}
+
+
 def with_overrides(sc: Scenario, *, policy: str | None = None, driver: str | None = None, loss: float | None = None,
-                   latency_ms: float | None = None, seed: int | None = None, duration: float | None = None) -> Scenario:
-    """Apply the command-line overrides of ``stack-fleet run`` to the raw YAML and validate again."""
+                   latency_ms: float | None = None, seed: int | None = None, duration: float | None = None,
+                   burst_loss: float | None = None) -> Scenario:
+    """Apply the command-line overrides of ``stack-fleet run`` (and the sweeps of ``stack-fleet bench``)
+    to the raw YAML and validate again. ``burst_loss``: Gilbert-Elliott loss with that mean."""
     raw = _deepcopy(sc.raw)
+    if burst_loss is not None:
+        raw["comm"] = dict(raw.get("comm") or {}) | {"loss": 0.0, "burst": burst_with_mean(burst_loss)}
     if policy is not None:
         _check_flag("--policy", policy, POLICIES)
         for r in raw["robots"]:

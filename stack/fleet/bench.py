@@ -79,3 +79,120 @@ def main(folder: Path, out: Path, seed: int | None = None) -> int:
     print(table)
     print(f"\ntable: {out / 'bench.md'}, {out / 'bench.json'}")
     return 0 if all(r["exit"] == 0 for r in rows) else 1
+
+
+# --- sweeps (issue 9): one comm parameter over values x seeds, per scenario and policy ------------
+
+SWEEPS = {"loss": "loss", "latency_ms": "latency_ms", "burst": "burst_loss"}
+SWEEP_COLUMNS = ("scenario", "policy", "value", "runs", "success_rate", "collisions", "min_robot_distance_m",
+                 "formation_error_rms_m", "connectivity", "delivered_share")
+
+
+def parse_sweep(text: str) -> tuple[str, list[float]]:
+    """``loss=0,0.1,0.2`` -> ("loss", [0.0, 0.1, 0.2]); ValueError naming what is wrong."""
+    name, _, values = text.partition("=")
+    if name not in SWEEPS or not values:
+        raise ValueError(f"expected PARAM=V1,V2,... with PARAM one of {', '.join(SWEEPS)}, got {text!r}")
+    out = []
+    for v in values.split(","):
+        try:
+            x = float(v)
+        except ValueError:
+            raise ValueError(f"{name}: {v!r} is not a number") from None
+        if x < 0 or (name != "latency_ms" and x > 1):
+            raise ValueError(f"{name}: {v} out of range ({'>= 0' if name == 'latency_ms' else '0..1'})")
+        out.append(x)
+    return name, out
+
+
+def sweep(folder: Path, out: Path, param: str, values: list[float], *, seeds: int = 3,
+          policies: list[str] | None = None, duration: float | None = None) -> int:
+    """Every scenario under ``folder`` x its implemented policies (or ``policies``) x ``values`` x
+    ``seeds`` (seeds 0..seeds-1): one table (markdown + JSON) and one plot, ``<param>_sweep.png``."""
+    files = sorted(folder.glob("*.yaml"))
+    if not files:
+        print(f"stack-fleet bench: {folder}: no scenario files", file=sys.stderr)
+        return 2
+    out.mkdir(parents=True, exist_ok=True)
+    impl = set(available())
+    plan = []
+    for f in files:
+        try:
+            sc = load_scenario(f)
+        except ScenarioError as e:
+            print(f"stack-fleet bench: {e}", file=sys.stderr)
+            return 2
+        for pol in (policies or sc.bench.policies):
+            if pol in impl:
+                plan.append((sc, pol))
+    from tqdm import tqdm
+
+    rows = []
+    total = len(plan) * len(values) * seeds
+    bar = tqdm(total=total, unit="run", desc=f"{param} sweep", file=sys.stderr, disable=not sys.stderr.isatty())
+    for sc, pol in plan:
+        for value in values:
+            reps = []
+            for seed in range(seeds):
+                run = with_overrides(sc, policy=pol, seed=seed, duration=duration, **{SWEEPS[param]: value})
+                dest = out / f"{sc.name}-{pol}-{param}{value:g}-s{seed}"
+                code, rep = run_fleet(FleetConfig(scenario=run, out=dest, progress=False, plots=False))
+                reps.append(rep)
+                bar.update(1)
+            rows.append(_aggregate(sc.name, pol, value, reps))
+    bar.close()
+    lines = ["| " + " | ".join(SWEEP_COLUMNS) + " |", "|" + " --- |" * len(SWEEP_COLUMNS)]
+    lines += ["| " + " | ".join(_cell(r[c]) for c in SWEEP_COLUMNS) + " |" for r in rows]
+    table = "\n".join(lines)
+    (out / f"{param}_sweep.md").write_text(table + "\n")
+    (out / f"{param}_sweep.json").write_text(json.dumps({"param": param, "values": values, "seeds": seeds, "rows": rows},
+                                                        indent=2))
+    _plot_sweep(rows, param, out / f"{param}_sweep.png")
+    print(table)
+    print(f"\ntable: {out / f'{param}_sweep.md'}; plot: {out / f'{param}_sweep.png'}")
+    return 0
+
+
+def _aggregate(scenario: str, policy: str, value: float, reps: list[dict]) -> dict:
+    def vals(key):
+        return [r[key] for r in reps if r.get(key) is not None]
+
+    comm = [r.get("comm", {}) for r in reps]
+    sent = sum(c.get("sent", 0) for c in comm)
+    delivered = sum(c.get("delivered", 0) for c in comm)
+    return {
+        "scenario": scenario, "policy": policy, "value": value, "runs": len(reps),
+        "success_rate": sum(bool(r.get("success")) for r in reps) / len(reps),
+        "collisions": sum(sum((r.get("collisions") or {}).values() or [0]) for r in reps if r.get("collisions")),
+        "min_robot_distance_m": min(vals("min_robot_distance_m"), default=None),
+        "formation_error_rms_m": float(sum(vals("formation_error_rms_m")) / len(vals("formation_error_rms_m")))
+        if vals("formation_error_rms_m") else None,
+        "connectivity": float(sum(vals("connectivity")) / len(vals("connectivity"))) if vals("connectivity") else None,
+        "delivered_share": delivered / sent if sent else None,
+    }
+
+
+def _plot_sweep(rows: list[dict], param: str, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4))
+    keys = sorted({(r["scenario"], r["policy"]) for r in rows})
+    for sc, pol in keys:
+        rs = sorted((r for r in rows if (r["scenario"], r["policy"]) == (sc, pol)), key=lambda r: r["value"])
+        x = [r["value"] for r in rs]
+        axes[0].plot(x, [r["success_rate"] for r in rs], "o-", label=f"{sc} / {pol}")
+        axes[1].plot(x, [r["collisions"] for r in rs], "o-")
+        axes[2].plot(x, [r["formation_error_rms_m"] if r["formation_error_rms_m"] is not None else float("nan") for r in rs], "o-")
+    for ax, title in zip(axes, ("success rate", "collisions (all seeds)", "formation error RMS [m]")):
+        ax.set_xlabel({"loss": "loss probability", "latency_ms": "latency [ms]", "burst": "mean burst loss"}[param])
+        ax.set_title(title)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylim(-0.05, 1.05)
+    axes[0].legend(fontsize=7)
+    fig.suptitle(f"{param} sweep")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -28,6 +28,25 @@ def _fault_at(text: str) -> tuple[int, float]:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
+def _sweep(text: str):
+    from .bench import parse_sweep
+
+    try:
+        return parse_sweep(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _positive_int(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {n}")
+    return n
+
+
 def _prob(text: str) -> float:
     try:
         x = float(text)
@@ -82,6 +101,11 @@ def parser() -> argparse.ArgumentParser:
     b.add_argument("--out", type=Path, default=Path("runs/bench"))
     b.add_argument("--scenarios", type=Path, default=Path("scenarios"), help="folder of scenario files")
     b.add_argument("--seed", type=int, help="override every scenario's seed")
+    b.add_argument("--sweep", type=_sweep, metavar="PARAM=V1,V2,...",
+                   help="sweep loss, latency_ms or burst (Gilbert-Elliott with that mean loss) over values x --seeds")
+    b.add_argument("--seeds", type=_positive_int, default=3, help="seeds per sweep value (0..N-1)")
+    b.add_argument("--policies", type=lambda t: t.split(","), help="comma-separated policies (default: each scenario's)")
+    b.add_argument("--duration", type=float, help="override every scenario's duration [s]")
     return ap
 
 
@@ -126,6 +150,15 @@ def cli(argv: list[str] | None = None) -> int:
 
         sigterm_as_interrupt()
         try:
+            if a.sweep is not None:
+                from .bench import sweep
+
+                bad = [p for p in (a.policies or []) if p not in POLICIES]
+                if bad:
+                    print(f"stack-fleet: --policies: unknown policy {bad[0]!r} (one of {', '.join(POLICIES)})", file=sys.stderr)
+                    return EXIT_BAD_INPUT
+                return sweep(a.scenarios, a.out, a.sweep[0], a.sweep[1], seeds=a.seeds, policies=a.policies,
+                             duration=a.duration)
             return bench_main(a.scenarios, a.out, seed=a.seed)
         except KeyboardInterrupt:
             print("stack-fleet: interrupted; every process was stopped", file=sys.stderr)
