@@ -146,3 +146,74 @@ def test_valid_but_wrong_scan_and_odd_keys_are_counted(running_fleet):
     step0 = agent.step
     time.sleep(0.5)
     assert agent.step > step0 and not errors
+
+
+def _bulk_payloads(n: int, rng) -> list[bytes]:
+    """Random bytes, truncated valid messages, wrongly typed maps and a few oversized payloads."""
+    valid = [msgpack.packb(v) for v in VALID.values()]
+    wrong = [msgpack.packb(dict(v) | {k: "x"}) for v in VALID.values() for k in v]
+    out = []
+    for i in range(n):
+        r = i % 4
+        if r == 0:
+            out.append(rng.randbytes(rng.randrange(0, 64)))
+        elif r == 1:
+            p = valid[i % len(valid)]
+            out.append(p[: rng.randrange(0, len(p))])
+        elif r == 2:
+            out.append(wrong[i % len(wrong)])
+        else:
+            out.append(b"\xdd\xff\xff\xff\xff" if i % 10_000 != 3 else b"\xc4\x00" + rng.randbytes(200_000))
+    return out
+
+
+def test_hundred_thousand_hostile_messages_counted_nobody_crashed(running_fleet):
+    """100,000 malformed, truncated, oversized and wrongly typed payloads over every key the agent and
+    the world listen on (scan, odom, imu, fix, a neighbour's state, the clock; cmd_vel, fault_ack):
+    every one is counted as a drop, and both keep stepping."""
+    import random
+
+    agent, world, s, errors = running_fleet
+    rng = random.Random(5)
+    agent_keys = ["0/scan", "0/odom", "0/imu", "0/fix", "7/state", "world/clock"]
+    world_keys = ["0/cmd_vel", "world/fault_ack"]
+    before_a, before_w = sum(agent.malformed.values()), world.malformed
+    pubs = {k: s.declare_publisher(f"stack/{FLEET}/{k}", congestion_control=zenoh.CongestionControl.BLOCK)
+            for k in agent_keys + world_keys}
+    n_agent = n_world = 0
+    keys = agent_keys + world_keys
+    for i, payload in enumerate(_bulk_payloads(100_000, rng)):
+        key = keys[i % len(keys)]
+        pubs[key].put(payload)
+        if key in agent_keys:
+            n_agent += 1
+        else:
+            n_world += 1
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        if sum(agent.malformed.values()) - before_a >= n_agent and world.malformed - before_w >= n_world:
+            break
+        time.sleep(0.1)
+    assert sum(agent.malformed.values()) - before_a == n_agent, (agent.malformed, n_agent)
+    assert world.malformed - before_w == n_world
+    step0 = agent.step
+    time.sleep(0.5)
+    assert agent.step > step0 and not errors
+    for p in pubs.values():
+        p.undeclare()
+
+
+def test_a_state_claiming_a_teleport_is_rejected(running_fleet):
+    agent, world, s, errors = running_fleet
+    before = agent.rejected_states
+    pose, t0 = agent.estimator.pose, agent.sim_now
+    for i, dx in enumerate((1.0, 1.05, 8.0)):  # then 7 m in 0.1 s from a robot that drives 1 m/s at most
+        st_ = dict(VALID[State]) | {"seq": 100 + i, "step": 0, "stamp": t0 + 0.1 * i, "x": pose.x + dx, "y": pose.y}
+        s.put(f"stack/{FLEET}/7/state", msgpack.packb(st_), congestion_control=zenoh.CongestionControl.BLOCK)
+    deadline = time.monotonic() + 5
+    while agent.rejected_states == before and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert agent.rejected_states == before + 1
+    n7 = agent.neighbours.get(7)
+    assert n7 is None or abs(n7.x - (pose.x + 1.05)) < 1e-9  # the plausible one was kept (until it went stale)
+    assert not errors
