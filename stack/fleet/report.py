@@ -258,13 +258,19 @@ def _fault_details(faults: list, diags: dict, f) -> list:
     """Each kill or freeze with how long every other agent took to drop the robot (``noticed_s``) and,
     for the leader, who took over and how long after the fault it commanded as leader."""
     out = []
-    for fault in faults:
+    gone: set[int] = set()
+    for fault in sorted(faults, key=lambda x: x.get("sim_time_s") or 0.0):
         fault = dict(fault)
         rid, t0 = fault["robot"], fault.get("sim_time_s")
+        if fault["kind"] == "restarted":
+            gone.discard(rid)
         if fault["kind"] in ("killed", "frozen", "crashed") and t0 is not None:
             fault["noticed_s"] = {str(a): round(d.noticed[rid] - t0, 3) for a, d in sorted(diags.items())
                                   if a != rid and rid in d.noticed and d.noticed[rid] >= t0 - 1e-9}
-            if f is not None and fault["kind"] != "frozen":
+            was_leader = f is not None and f.resolve(t0, gone)[0] == rid
+            if fault["kind"] != "frozen":
+                gone.add(rid)
+            if was_leader and fault["kind"] != "frozen":
                 took = sorted((d.led_since, a) for a, d in diags.items()
                               if a != rid and d.led_since is not None and d.led_since >= t0 - 1e-9)
                 if took:
