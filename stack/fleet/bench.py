@@ -27,6 +27,21 @@ def _cell(v) -> str:
     return "-" if v is None else str(v)
 
 
+def _plan(folder: Path, policies: list[str] | None = None) -> tuple[list, list]:
+    """(scenario, policy) pairs to run from every scenario file in ``folder`` (each scenario's
+    ``bench.policies``, or ``policies``), and those skipped because the policy is not implemented."""
+    files = sorted(folder.glob("*.yaml"))
+    if not files:
+        raise ScenarioError(f"{folder}: no scenario files")
+    impl = set(available())
+    plan, skipped = [], []
+    for f in files:
+        sc = load_scenario(f)
+        for pol in policies or sc.bench.policies:
+            (plan if pol in impl else skipped).append((sc, pol))
+    return plan, skipped
+
+
 def convergence_cell(rep: dict) -> str | None:
     """Followers' error_convergence_time_s x/y, counted from the last formation switch (Deng Tables 1-2)."""
     t0 = max(rep.get("formation_switches_s") or [0.0])
@@ -41,23 +56,14 @@ def convergence_cell(rep: dict) -> str | None:
 
 
 def main(folder: Path, out: Path, seed: int | None = None) -> int:
-    files = sorted(folder.glob("*.yaml"))
-    if not files:
-        print(f"stack-fleet bench: {folder}: no scenario files", file=sys.stderr)
+    try:
+        plan, skipped = _plan(folder)
+    except ScenarioError as e:
+        print(f"stack-fleet bench: {e}", file=sys.stderr)
         return 2
     out.mkdir(parents=True, exist_ok=True)
-    impl = set(available())
-    rows, skipped = [], []
-    plan = []
-    for f in files:
-        try:
-            sc = load_scenario(f)
-        except ScenarioError as e:
-            print(f"stack-fleet bench: {e}", file=sys.stderr)
-            return 2
-        for pol in sc.bench.policies:
-            (plan if pol in impl else skipped).append((f, sc, pol))
-    for n, (f, sc, pol) in enumerate(plan, 1):
+    rows = []
+    for n, (sc, pol) in enumerate(plan, 1):
         run = with_overrides(sc, policy=pol, seed=seed)
         dest = out / f"{sc.name}-{pol}"
         print(f"[{n}/{len(plan)}] {sc.name} with {pol} ...", file=sys.stderr, flush=True)
@@ -72,10 +78,10 @@ def main(folder: Path, out: Path, seed: int | None = None) -> int:
         lines.append("| " + " | ".join(_cell(r[c]) for c in COLUMNS) + f" | {r['reference']} |")
     if skipped:
         lines.append("")
-        lines.append("Not run (policy not implemented yet): " + ", ".join(f"{sc.name}/{p}" for _, sc, p in skipped))
+        lines.append("Not run (policy not implemented yet): " + ", ".join(f"{sc.name}/{p}" for sc, p in skipped))
     table = "\n".join(lines)
     (out / "bench.md").write_text(table + "\n")
-    (out / "bench.json").write_text(json.dumps({"runs": rows, "skipped": [[sc.name, p] for _, sc, p in skipped]}, indent=2))
+    (out / "bench.json").write_text(json.dumps({"runs": rows, "skipped": [[sc.name, p] for sc, p in skipped]}, indent=2))
     print(table)
     print(f"\ntable: {out / 'bench.md'}, {out / 'bench.json'}")
     return 0 if all(r["exit"] == 0 for r in rows) else 1
@@ -109,22 +115,12 @@ def sweep(folder: Path, out: Path, param: str, values: list[float], *, seeds: in
           policies: list[str] | None = None, duration: float | None = None) -> int:
     """Every scenario under ``folder`` x its implemented policies (or ``policies``) x ``values`` x
     ``seeds`` (seeds 0..seeds-1): one table (markdown + JSON) and one plot, ``<param>_sweep.png``."""
-    files = sorted(folder.glob("*.yaml"))
-    if not files:
-        print(f"stack-fleet bench: {folder}: no scenario files", file=sys.stderr)
+    try:
+        plan, _ = _plan(folder, policies)
+    except ScenarioError as e:
+        print(f"stack-fleet bench: {e}", file=sys.stderr)
         return 2
     out.mkdir(parents=True, exist_ok=True)
-    impl = set(available())
-    plan = []
-    for f in files:
-        try:
-            sc = load_scenario(f)
-        except ScenarioError as e:
-            print(f"stack-fleet bench: {e}", file=sys.stderr)
-            return 2
-        for pol in (policies or sc.bench.policies):
-            if pol in impl:
-                plan.append((sc, pol))
     from tqdm import tqdm
 
     rows = []

@@ -9,6 +9,7 @@ import re
 import sys
 from pathlib import Path
 
+from ..argtypes import positive_int
 from ..comm.session import EndpointError, SessionError, check_endpoint, port_free
 from ..policies import available as available_policies
 from ..scenario import DRIVERS, FAULT_KINDS, POLICIES, ScenarioError, load_scenario, parse_fault_at, with_overrides
@@ -35,16 +36,6 @@ def _sweep(text: str):
         return parse_sweep(text)
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
-
-
-def _positive_int(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {n}")
-    return n
 
 
 def _prob(text: str) -> float:
@@ -103,7 +94,7 @@ def parser() -> argparse.ArgumentParser:
     b.add_argument("--seed", type=int, help="override every scenario's seed")
     b.add_argument("--sweep", type=_sweep, metavar="PARAM=V1,V2,...",
                    help="sweep loss, latency_ms or burst (Gilbert-Elliott with that mean loss) over values x --seeds")
-    b.add_argument("--seeds", type=_positive_int, default=3, help="seeds per sweep value (0..N-1)")
+    b.add_argument("--seeds", type=positive_int, default=3, help="seeds per sweep value (0..N-1)")
     b.add_argument("--policies", type=lambda t: t.split(","), help="comma-separated policies (default: each scenario's)")
     b.add_argument("--duration", type=float, help="override every scenario's duration [s]")
     return ap

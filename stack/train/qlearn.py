@@ -21,6 +21,7 @@ import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from ..argtypes import positive_int
 from . import InputError
 
 #: Table 2 of the paper (Q-L3: "No" everywhere).
@@ -60,15 +61,6 @@ class QLearnJob:
     """Show a tqdm progress bar over the runs."""
 
 
-def _positive_int(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return n
-
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from stack.planning.qlearning import VARIANTS
@@ -76,10 +68,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--map", metavar="FILE", help="ASCII map (a path, or a name under maps/); required unless --formation")
     p.add_argument("--variant", default="Q-L5", choices=VARIANTS + ("all",), help="Table 1 variant, or all (default Q-L5)")
     p.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
-    p.add_argument("--seeds", type=_positive_int, help="number of seeds S, S+1, ... (default 10 with --variant all, else 1)")
+    p.add_argument("--seeds", type=positive_int, help="number of seeds S, S+1, ... (default 10 with --variant all, else 1)")
     p.add_argument("--out", type=Path, default=Path("runs/qlearn"), help="output folder (default runs/qlearn)")
-    p.add_argument("--max-rounds", type=_positive_int, default=10000, help="most rounds per run (default 10000)")
-    p.add_argument("--max-steps", type=_positive_int, help="most steps per round (default: the number of cells)")
+    p.add_argument("--max-rounds", type=positive_int, default=10000, help="most rounds per run (default 10000)")
+    p.add_argument("--max-steps", type=positive_int, help="most steps per round (default: the number of cells)")
     p.add_argument("--collision", choices=("stay", "terminal"), default="stay",
                    help="a collision keeps the robot in place (default) or ends the round")
     p.add_argument("--formation", action="store_true",
