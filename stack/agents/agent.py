@@ -33,6 +33,7 @@ from .timing import LatencyHistogram
 
 log = logging.getLogger("stack.agent")
 
+NEIGHBOUR_WAIT_S = 1.0  # lock-step: how long to wait for a neighbour's state of the previous step
 JUMP_TOLERANCE_M = 2.0  # a neighbour's state may move this much beyond what its v_max allows (estimate corrections)
 STALE_AFTER_S = 3.0  # a neighbour not heard for this long is left out of the formation logic
 SENSOR_STALE_S = 0.5  # real time: no new scan and odometry for this long -> zero velocity
@@ -122,6 +123,7 @@ class Agent:
         self.noticed: dict[int, float] = {}  # robot id -> run time at which this agent last dropped it (gone or stale)
         self.led_since: float | None = None  # failover: run time this agent took over as leader
         self.rejected_states = 0  # neighbours' states that claimed an impossible jump
+        self.neighbour_waits_timed_out = 0  # lock-step: steps that went on without an awaited neighbour state
         self.neighbours: dict[int, Neighbour] = {}
         self.scans: deque[np.ndarray] = deque(maxlen=3)
 
@@ -296,11 +298,15 @@ class Agent:
                 self._awaited_step = k - 1
                 self._awaited = {i for i in clock.answered if i != self.id and i not in clock.dead
                                  and self._states_seen.get(i, -1) < k - 1}
-                t_end = time.monotonic() + 1.0
+                t_end = time.monotonic() + NEIGHBOUR_WAIT_S
                 while self._awaited and time.monotonic() < t_end:
                     if self.cfg.stop.is_set():
                         return None
                     self._cv.wait(0.05)
+                if self._awaited:  # a sender answered the world but its state never reached us: go on, say so
+                    self.neighbour_waits_timed_out += 1
+                    log.warning("agent %d: step %d: no state of step %d from %s within %.1f s; going on without",
+                                self.id, k, k - 1, sorted(self._awaited), NEIGHBOUR_WAIT_S)
                 self._awaited = set()
             if lockstep:
                 self.sim_now = max(self.sim_now, scan.stamp)
@@ -445,5 +451,5 @@ class Agent:
                  fixes_rejected=self.estimator.rejected_fixes, inputs_rejected=self.estimator.rejected_nan,
                  sensor_stale=self.sensor_stale,
                  fault=self.fault, noticed=dict(self.noticed), led_since=self.led_since,
-                 rejected_states=self.rejected_states)
+                 rejected_states=self.rejected_states, neighbour_waits_timed_out=self.neighbour_waits_timed_out)
         self._diag_pub.put(encode(d))

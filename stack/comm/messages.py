@@ -189,6 +189,7 @@ class Diag(_Msg):
     noticed: dict[int, float] = {}  # robot id -> sim time this agent dropped it (gone)
     led_since: float | None = None  # sim time this agent took over as leader (failover)
     rejected_states: int = 0  # neighbours' states that claimed an impossible jump
+    neighbour_waits_timed_out: int = 0  # lock-step steps that went on without an awaited neighbour state
 
 
 _ENCODER = msgspec.msgpack.Encoder()

@@ -154,6 +154,7 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
             "estimator_inputs_rejected": d.inputs_rejected if d is not None else None,
             "sensor_stale_stops": d.sensor_stale if d is not None else None,
             "states_rejected": d.rejected_states if d is not None else None,
+            "neighbour_waits_timed_out": d.neighbour_waits_timed_out if d is not None else None,
             "led_since_s": d.led_since if d is not None else None,
             "alive_at_end": bool(alive[-1, j]),
         }
