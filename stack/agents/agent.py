@@ -22,7 +22,7 @@ import numpy as np
 import zenoh
 
 from ..comm import Keys, MessageError, RadioModel, decode, encode, receive
-from ..comm.messages import Clock, Diag, Fix, Scan, State
+from ..comm.messages import Clock, Diag, Fix, Scan, State, WorldStatus
 from ..comm.radio import config_from_scenario
 from ..drivers import Driver, DriverLimits, make_driver
 from ..estimation import EkfConfig, PoseEKF
@@ -49,6 +49,10 @@ class AgentConfig:
     """The validated scenario (already with the fleet's overrides applied)."""
     connect: str = "tcp/127.0.0.1:7447"
     """Zenoh endpoint of the router to join."""
+    zenoh_config: str | None = None
+    """A zenoh json5 file (``deploy/``: TLS, access control, a local router) layered under our settings."""
+    allow_remote: bool = False
+    """Allow a router endpoint off loopback (a multi-host fleet)."""
     fleet: str = "default"
     """Fleet name: the key prefix ``stack/<fleet>/``."""
     policy: str | None = None
@@ -187,6 +191,12 @@ class Agent:
                 self.sim_now = max(self.sim_now, m.t)
             self._cv.notify_all()
 
+    def _on_world_status(self, sample: zenoh.Sample) -> None:
+        m = receive(sample, WorldStatus, self._count_malformed)
+        if m is not None and m.state == "done" and self.cfg.lockstep:
+            log.info("agent %d: the world is done (%s): stopping", self.id, m.why)
+            self.cfg.stop.set()  # a simulated run is over: zero velocity and exit, also when nobody signals us
+
     def _on_state(self, sample: zenoh.Sample) -> None:
         sender = Keys.id_of(str(sample.key_expr))
         if sender == self.id:
@@ -231,6 +241,7 @@ class Agent:
             s.declare_subscriber(k.robot(self.id, "fix"), self._on_fix),
             s.declare_subscriber(k.all_robots("state"), self._on_state),
             s.declare_subscriber(k.world("clock"), self._on_clock),
+            s.declare_subscriber(k.world("status"), self._on_world_status),
             s.liveliness().declare_subscriber(k.all_alive, self._on_alive, history=True),
         ]
         token = None

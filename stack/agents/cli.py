@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import re
 import logging
 import signal
 import sys
 
+from ..argtypes import fleet_name
 from ..comm.session import EndpointError, SessionConfig, SessionError, check_endpoint, open_session
 from ..drivers import UnknownDriver
 from ..policies import PolicyUnavailable
@@ -23,12 +23,6 @@ class _Parser(argparse.ArgumentParser):
         sys.exit(2)
 
 
-def _fleet_name(text: str) -> str:
-    if not re.fullmatch(r"[A-Za-z0-9_-]+", text):
-        raise argparse.ArgumentTypeError(f"expected letters, digits, '_' or '-' (a key-expression chunk), got {text!r}")
-    return text
-
-
 def parser() -> argparse.ArgumentParser:
     ap = _Parser(prog="stack-agent", description="One robot of a formation: sensors, estimator, decision layer, policy, driver.")
     ap.add_argument("--id", type=int, required=True, help="robot id in the scenario")
@@ -37,11 +31,12 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--policy", choices=POLICIES, help="override the robot's policy")
     ap.add_argument("--driver", choices=DRIVERS, help="override the robot's driver")
     ap.add_argument("--connect", default="tcp/127.0.0.1:7447", help="Zenoh router endpoint (default %(default)s)")
-    ap.add_argument("--fleet", default="default", type=_fleet_name, help="fleet name, the key prefix stack/<fleet>/ (default %(default)s)")
+    ap.add_argument("--fleet", default="default", type=fleet_name, help="fleet name, the key prefix stack/<fleet>/ (default %(default)s)")
     ap.add_argument("--lockstep", action="store_true", help="answer the simulated world's steps (set by stack-fleet)")
     ap.add_argument("--steps", type=int, help="stop after this many control steps")
     ap.add_argument("--seed", type=int, help="seed of every random source (default: the scenario's)")
     ap.add_argument("--allow-remote", action="store_true", help="allow a router endpoint off loopback")
+    ap.add_argument("--zenoh-config", metavar="FILE", help="zenoh json5 config layered under ours (deploy/: TLS, access control)")
     ap.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     return ap
 
@@ -58,10 +53,10 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
     if a.policy or a.driver:
         sc = with_overrides(sc, policy=a.policy, driver=a.driver)
     return AgentConfig(robot_id=a.id, scenario=sc, connect=a.connect, fleet=a.fleet, lockstep=a.lockstep,
-                       steps=a.steps, seed=a.seed)
+                       steps=a.steps, seed=a.seed, zenoh_config=a.zenoh_config, allow_remote=a.allow_remote)
 
 
-def main(cfg: AgentConfig, allow_remote: bool = False) -> int:
+def main(cfg: AgentConfig) -> int:
     """Run one agent until its stop event, ``steps``, or a signal; zero velocity on every way out."""
     def on_signal(signum, _frame):
         log.info("agent %d: %s: stopping", cfg.robot_id, signal.Signals(signum).name)
@@ -70,9 +65,17 @@ def main(cfg: AgentConfig, allow_remote: bool = False) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, on_signal)
     log.info("agent %d config: %s", cfg.robot_id, {k: v for k, v in vars(cfg).items() if k not in ("scenario", "stop")})
-    with open_session(SessionConfig(mode="client", connect=[cfg.connect], allow_remote=allow_remote)) as session:
-        agent = Agent(cfg, session)
-        return agent.run()
+    try:
+        with open_session(SessionConfig(mode="client", connect=[cfg.connect], config_file=cfg.zenoh_config,
+                                        allow_remote=cfg.allow_remote)) as session:
+            agent = Agent(cfg, session)
+            return agent.run()
+    finally:
+        # The robot has its zero command; from here on a SIGINT/SIGTERM (the fleet stopping an agent that is
+        # already on its way out, e.g. after the world said "done") must not kill the interpreter's
+        # finalisation: Python restores SIG_DFL there for Python-level handlers, but keeps SIG_IGN.
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)
 
 
 def cli(argv: list[str] | None = None) -> int:
@@ -84,7 +87,7 @@ def cli(argv: list[str] | None = None) -> int:
         print(f"stack-agent: {e}", file=sys.stderr)
         return 2
     try:
-        return main(cfg, a.allow_remote)
+        return main(cfg)
     except (PolicyUnavailable, UnknownDriver) as e:
         print(f"stack-agent: {e}", file=sys.stderr)
         return 2

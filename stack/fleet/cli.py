@@ -9,7 +9,7 @@ import re
 import sys
 from pathlib import Path
 
-from ..argtypes import positive_int
+from ..argtypes import fleet_name, positive_int
 from ..comm.session import EndpointError, SessionError, check_endpoint, port_free
 from ..policies import available as available_policies
 from ..scenario import DRIVERS, FAULT_KINDS, POLICIES, ScenarioError, load_scenario, parse_fault_at, with_overrides
@@ -85,6 +85,13 @@ def parser() -> argparse.ArgumentParser:
                    help="SIGSTOP robot ID's agent at sim time T (a hung process: its driver watchdog stops the robot)")
     r.add_argument("--restart", type=_fault_at, action="append", default=[], metavar="ID@T",
                    help="start robot ID's agent again at sim time T (after a --kill or --freeze: it rejoins)")
+    r.add_argument("--connect", metavar="EP", help="join this (site) router instead of starting one")
+    r.add_argument("--external-agents", action="store_true",
+                   help="start no agents: they run elsewhere (stack-agent on each robot); wait for their tokens")
+    r.add_argument("--wait-agents", type=float, default=60.0, metavar="S", help="how long to wait for every agent (default 60 s)")
+    r.add_argument("--fleet", type=fleet_name, help="fleet name, the key prefix stack/<fleet>/ (default: one per run)")
+    r.add_argument("--zenoh-config", metavar="FILE", help="zenoh json5 config (deploy/: TLS, access control) for the fleet's sessions")
+    r.add_argument("--allow-remote", action="store_true", help="allow router endpoints off loopback (multi-host)")
     r.add_argument("--no-progress", action="store_true", help="no live progress line")
     r.add_argument("--no-plots", action="store_true", help="skip trajectories.png and distances.png")
     r.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
@@ -125,13 +132,25 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
             raise ScenarioError(f"--listen {a.listen}: the fleet's router listens on TCP (tcp/HOST:PORT)")
         if not port_free(a.listen):
             raise ScenarioError(f"--listen {a.listen}: address in use")
+    if a.connect:
+        if a.listen:
+            raise ScenarioError("--connect and --listen: give one (join a router, or start ours on an endpoint)")
+        check_endpoint(a.connect, a.allow_remote)
+    if a.external_agents and faults:
+        raise ScenarioError("--external-agents: faults (--kill/--freeze/--restart) need agents this command started")
+    if a.wait_agents <= 0:
+        raise ScenarioError(f"--wait-agents: must be > 0, got {a.wait_agents:g}")
+    if a.zenoh_config is not None and not Path(a.zenoh_config).is_file():
+        raise ScenarioError(f"--zenoh-config {a.zenoh_config}: no such file")
     if a.gui and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         raise ScenarioError("--gui: no display (DISPLAY is not set); run without --gui, or under a desktop or Xvfb")
     out = a.out or Path("runs") / sc.name
     if out.exists() and not out.is_dir():
         raise ScenarioError(f"--out {out}: exists and is not a folder")
     return FleetConfig(scenario=sc, out=out, realtime=a.realtime, gui=a.gui, listen=a.listen, faults=faults,
-                       progress=not a.no_progress, plots=not a.no_plots)
+                       progress=not a.no_progress, plots=not a.no_plots, connect=a.connect,
+                       external_agents=a.external_agents, wait_agents_s=a.wait_agents, fleet=a.fleet,
+                       zenoh_config=a.zenoh_config, allow_remote=a.allow_remote)
 
 
 def cli(argv: list[str] | None = None) -> int:

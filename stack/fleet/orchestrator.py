@@ -24,7 +24,7 @@ import zenoh
 from ..comm import Keys, receive
 from ..comm import encode
 from ..comm.messages import Clock, Diag, FaultAck, FaultRequest, State, WorldStatus
-from ..comm.session import SessionConfig, free_tcp_endpoint, open_session
+from ..comm.session import SessionConfig, SessionError, free_tcp_endpoint, open_session
 from ..scenario import Scenario
 from .report import build_report
 
@@ -60,6 +60,16 @@ class FleetConfig:
     """Give up after this much wall time (default: generous, from the duration)."""
     plots: bool = True
     """Write trajectories.png and distances.png."""
+    connect: str | None = None
+    """An existing router to join (a site router, multi-host); none is started then."""
+    external_agents: bool = False
+    """The agents run elsewhere (their own machines): start none, wait for their liveliness tokens."""
+    wait_agents_s: float = 60.0
+    """How long to wait for every expected agent's token."""
+    zenoh_config: str | None = None
+    """A zenoh json5 file (deploy/: TLS, access control) for our own session and the world's."""
+    allow_remote: bool = False
+    """Allow router endpoints off loopback (multi-host)."""
 
 
 def sigterm_as_interrupt() -> None:
@@ -79,6 +89,7 @@ class _Proc:
         self.asked_to_stop = False
         self.killed_at: float | None = None
         self.frozen = False
+        self.exited_at: float | None = None
 
     def poll(self) -> int | None:
         return self.p.poll()
@@ -159,6 +170,7 @@ class Monitor:
         self.diag: dict[int, Diag] = {}
         self.estimates: dict[int, list[tuple[int, float, float]]] = {}
         self.situation: dict[int, str] = {}
+        self.alive: set[int] = set()
         self.malformed = 0
         self.fault_requests: list[FaultRequest] = []
         self._subs = [
@@ -167,7 +179,28 @@ class Monitor:
             session.declare_subscriber(keys.world("status"), self._on(WorldStatus, self._status)),
             session.declare_subscriber(keys.all_robots("diag"), self._on(Diag, self._diag)),
             session.declare_subscriber(keys.all_robots("state"), self._on(State, self._state)),
+            session.liveliness().declare_subscriber(keys.all_alive, self._alive, history=True),
         ]
+
+    def _alive(self, sample: zenoh.Sample) -> None:
+        rid = Keys.id_of(str(sample.key_expr))
+        if rid is None:
+            return
+        with self.lock:
+            if sample.kind == zenoh.SampleKind.DELETE:
+                self.alive.discard(rid)
+            else:
+                self.alive.add(rid)
+
+    def wait_alive(self, ids: set[int], timeout: float) -> set[int]:
+        """Wait until every id has a liveliness token; returns the ones still missing."""
+        deadline = time.monotonic() + timeout
+        while True:
+            with self.lock:
+                missing = ids - self.alive
+            if not missing or time.monotonic() > deadline:
+                return missing
+            time.sleep(0.1)
 
     def _on(self, kind, handler):
         def callback(sample: zenoh.Sample) -> None:
@@ -211,7 +244,7 @@ def run_fleet(cfg: FleetConfig) -> tuple[int, dict]:
     resolved.write_text(sc.to_yaml())
     fleet = cfg.fleet or f"run{os.getpid()}"
     keys = Keys(fleet)
-    endpoint = cfg.listen or free_tcp_endpoint()
+    endpoint = cfg.connect or cfg.listen or free_tcp_endpoint()
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     # many small processes on few cores: one zenoh worker thread each (fleet_bench: +15 % steps/s at 32 robots)
     env.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME)
@@ -222,17 +255,31 @@ def run_fleet(cfg: FleetConfig) -> tuple[int, dict]:
     wall0 = time.monotonic()
     wall_limit = cfg.wall_timeout_s or max(120.0, sc.duration * (3.0 if cfg.realtime else 2.0) + 60.0)
 
-    router = _Proc("router", [py, "-m", "stack.comm.router", "--listen", endpoint], out / "logs" / "router.log", env)
+    remote = ["--allow-remote"] if cfg.allow_remote else []
+    zconf = ["--zenoh-config", cfg.zenoh_config] if cfg.zenoh_config else []
+    router = None
+    if cfg.connect is None:
+        router = _Proc("router", [py, "-m", "stack.comm.router", "--listen", endpoint, *remote]
+                       + (["--config", cfg.zenoh_config] if cfg.zenoh_config else []), out / "logs" / "router.log", env)
     try:
+        if router is not None:
+            try:
+                _wait_port(endpoint, process=router)
+            except TimeoutError as e:
+                crashed.append({"process": "router", "exit_code": router.poll(), "sim_time_s": 0.0,
+                                "log_tail": f"{e}: {router.tail(2)}"})
+                raise _Abort from None
+        session_cfg = SessionConfig(mode="client", connect=[endpoint], config_file=cfg.zenoh_config,
+                                    allow_remote=cfg.allow_remote)
         try:
-            _wait_port(endpoint, process=router)
-        except TimeoutError as e:
-            crashed.append({"process": "router", "exit_code": router.poll(), "sim_time_s": 0.0, "log_tail": f"{e}: {router.tail(2)}"})
+            session = open_session(session_cfg)
+        except SessionError as e:
+            crashed.append({"process": "orchestrator", "exit_code": None, "sim_time_s": 0.0, "log_tail": str(e)})
             raise _Abort from None
-        with open_session(SessionConfig(mode="client", connect=[endpoint])) as session:
+        with session:
             mon = Monitor(session, keys)
             world_argv = [py, "-m", "stack.sim_bridge", "--scenario", str(resolved), "--connect", endpoint, "--fleet", fleet,
-                          "--out", str(out)]
+                          "--out", str(out), "--wait-agents", f"{cfg.wait_agents_s:g}", *remote, *zconf]
             if cfg.realtime:
                 world_argv.append("--realtime")
             if cfg.gui:
@@ -242,15 +289,23 @@ def run_fleet(cfg: FleetConfig) -> tuple[int, dict]:
             procs["world"] = _Proc("world", world_argv, out / "logs" / "world.log", env)
             def start_agent(r, log_name: str) -> _Proc:
                 argv = [py, "-m", "stack.agents", "--id", str(r.id), "--scenario", str(resolved), "--connect", endpoint,
-                        "--fleet", fleet, "--log-level", "INFO"]
+                        "--fleet", fleet, "--log-level", "INFO", *remote, *zconf]
                 if r.role:
                     argv += ["--role", r.role]
                 if not cfg.realtime:
                     argv.append("--lockstep")
                 return _Proc(f"agent {r.id}", argv, out / "logs" / log_name, env)
 
-            for r in sc.robots:
-                procs[f"agent-{r.id}"] = start_agent(r, f"agent-{r.id}.log")
+            if cfg.external_agents:
+                missing = mon.wait_alive(set(sc.ids), cfg.wait_agents_s)
+                if missing:
+                    crashed.append({"process": "agents", "exit_code": None, "sim_time_s": 0.0,
+                                    "log_tail": f"robots {sorted(missing)} never came up on {endpoint} (fleet "
+                                                f"{fleet!r}) within {cfg.wait_agents_s:g} s"})
+                    raise _Abort
+            else:
+                for r in sc.robots:
+                    procs[f"agent-{r.id}"] = start_agent(r, f"agent-{r.id}.log")
             ack_pub = session.declare_publisher(keys.world("fault_ack"), congestion_control=zenoh.CongestionControl.BLOCK)
             wanted = {(kind, rid): at for kind, rid, at in cfg.faults}
             retired: list[_Proc] = []  # agents replaced by a restart
@@ -293,8 +348,13 @@ def run_fleet(cfg: FleetConfig) -> tuple[int, dict]:
                     ack_pub.put(encode(FaultAck(step=req.step, kind=req.kind, done=done)))
                 for name, pr in procs.items():
                     rc = pr.poll()
+                    if rc == 0 and status != "done":
+                        # a lock-step agent ends by itself once the world is done; give that news a moment here
+                        pr.exited_at = pr.exited_at or time.monotonic()
+                        if time.monotonic() - pr.exited_at < 2.0:
+                            continue
                     if rc is not None and not pr.asked_to_stop and pr.killed_at is None and name != "world" \
-                            and not any(c["process"] == pr.name for c in crashed):
+                            and status != "done" and not any(c["process"] == pr.name for c in crashed):
                         crashed.append({"process": pr.name, "exit_code": rc, "sim_time_s": t, "log_tail": pr.tail()})
                         faults.append({"robot": int(name.split("-")[1]), "kind": "crashed", "exit_code": rc, "sim_time_s": t})
                 wrc = procs["world"].poll()
@@ -335,8 +395,9 @@ def run_fleet(cfg: FleetConfig) -> tuple[int, dict]:
             if pr.poll() is None:
                 pr.stop(5)
             pr.close()
-        router.stop(5)
-        router.close()
+        if router is not None:
+            router.stop(5)
+            router.close()
 
     wall = time.monotonic() - wall0
     report = build_report(sc, out, diags=diags, estimates=estimates, faults=faults, crashed=crashed,

@@ -18,7 +18,8 @@ log = logging.getLogger("stack.world")
 def main(cfg: WorldConfig) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: cfg.stop.set())
-    with open_session(SessionConfig(mode="client", connect=[cfg.connect])) as session:
+    with open_session(SessionConfig(mode="client", connect=[cfg.connect], config_file=cfg.zenoh_config,
+                                    allow_remote=cfg.allow_remote)) as session:
         server = WorldServer(cfg, session)
         try:
             result = server.run()
@@ -45,6 +46,8 @@ def cli(argv: list[str] | None = None) -> int:
     ap.add_argument("--lockstep-timeout", type=float, default=2.0)
     ap.add_argument("--no-stop-early", action="store_true", help="run the whole duration even when the task is done")
     ap.add_argument("--log-level", default="WARNING")
+    ap.add_argument("--zenoh-config", metavar="FILE", help="zenoh json5 config layered under ours (deploy/)")
+    ap.add_argument("--allow-remote", action="store_true", help="allow a router endpoint off loopback")
     for kind in FAULT_KINDS:
         ap.add_argument(f"--{kind}", type=_fault_at, action="append", default=[], metavar="ID@T",
                         help=f"ask for a {kind} of robot ID's agent at sim time T (on world/fault)")
@@ -52,13 +55,13 @@ def cli(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=a.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         sc = load_scenario(a.scenario)
-        check_endpoint(a.connect)
+        check_endpoint(a.connect, a.allow_remote)
     except (ScenarioError, EndpointError) as e:
         print(f"stack-world: {e}", file=sys.stderr)
         return 2
     cfg = WorldConfig(scenario=sc, connect=a.connect, fleet=a.fleet, out=a.out, realtime=a.realtime, gui=a.gui,
                       wait_agents_s=a.wait_agents, lockstep_timeout_s=a.lockstep_timeout, duration=a.duration,
-                      stop_early=not a.no_stop_early,
+                      stop_early=not a.no_stop_early, zenoh_config=a.zenoh_config, allow_remote=a.allow_remote,
                       faults=[(kind, rid, t) for kind in FAULT_KINDS for rid, t in getattr(a, kind)])
     return main(cfg)
 

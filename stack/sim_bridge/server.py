@@ -42,6 +42,10 @@ class WorldConfig:
     """Validated, resolved scenario."""
     connect: str = "tcp/127.0.0.1:7447"
     """Router endpoint."""
+    zenoh_config: str | None = None
+    """A zenoh json5 file layered under our settings (deploy/)."""
+    allow_remote: bool = False
+    """Allow a router endpoint off loopback."""
     fleet: str = "default"
     """Key prefix ``stack/<fleet>/``."""
     out: Path | None = None
