@@ -10,6 +10,7 @@ from .base import Observation, Policy
 REGISTRY: dict[str, str] = {
     "pid": "stack.policies.factories:make_pid",
     "aina": "stack.policies.factories:make_aina",
+    "qlearn": "stack.policies.factories:make_qlearn",
 }
 
 

@@ -16,3 +16,9 @@ def make_aina(robot, *, seed: int = 0, **_):
 
     return AinaPolicy(robot.aina, role=robot.role or "leader", radius=robot.radius, v_max=robot.v_max,
                       lidar_fov=robot.lidar.fov, lidar_range=robot.lidar.range, seed=seed)
+
+
+def make_qlearn(robot, *, seed: int = 0, **kw):
+    from .qlearn import make_qlearn as make
+
+    return make(robot, seed=seed, **kw)
