@@ -13,6 +13,7 @@ from .base import Driver, DriverError, DriverLimits, Odometry
 BACKENDS: dict[str, str] = {
     "sim": "stack.drivers.sim:SimDriver",
     "can": "stack.drivers.can:CanDriver",
+    "mavlink": "stack.drivers.mavlink:MavlinkDriver",
 }
 
 
