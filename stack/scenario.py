@@ -12,7 +12,7 @@ orchestrator) reads the same resolved file, written by the orchestrator next to 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -422,10 +422,27 @@ def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict
     params = dict(out.get("driver_params", {}))
     for name in DRIVERS:
         if name in d:
-            # no driver takes settings yet (the can/mavlink/jackal issues add theirs here)
-            params[name] = dict(rd.mapping(d[name] or {}, f"{path}.{name}", set()))
+            params[name] = _driver_settings(rd, name, d[name], f"{path}.{name}")
     out["driver_params"] = params
     return out
+
+
+def _driver_settings(rd: _Reader, name: str, value: Any, path: str) -> dict[str, Any]:
+    """A robot's ``<driver>:`` block: the fields of that driver's config dataclass, checked by it."""
+    from .drivers import UnknownDriver, driver_class  # lazy: python-can / pymavlink only when a block is given
+
+    try:
+        cls = driver_class(name).config_class
+    except UnknownDriver:
+        cls = None
+    allowed = {f.name for f in fields(cls)} if cls is not None else set()
+    m = dict(rd.mapping(value or {}, path, allowed))
+    if cls is not None:
+        try:
+            cls(**m)
+        except (TypeError, ValueError) as e:
+            raise rd.fail(path, str(e)) from None
+    return m
 
 
 def _slots(rd: _Reader, slots_d: Any, path: str, seen: set[int], leader: int) -> dict[int, Slot]:
@@ -679,6 +696,18 @@ def with_overrides(sc: Scenario, *, policy: str | None = None, driver: str | Non
         raw["seed"] = seed
     if duration is not None:
         raw["duration"] = duration
+    return parse_scenario(raw, sc.source)
+
+
+def with_driver_settings(sc: Scenario, settings: dict[int, dict[str, Any]]) -> Scenario:
+    """The scenario with more driver settings for some robots (``{id: {key: value}}``, for each robot's own
+    driver), over what the scenario gave them: how the fleet tells agents where their simulated device is."""
+    raw = _deepcopy(sc.raw)
+    for r in raw["robots"]:
+        extra = settings.get(r["id"])
+        if extra:
+            robot = sc.robot(r["id"])
+            r[robot.driver] = dict(robot.driver_params.get(robot.driver, {})) | extra
     return parse_scenario(raw, sc.source)
 
 

@@ -242,7 +242,8 @@ def test_command_signs_odometry_and_position_fix(rig):
     sim.set_pose(2.0, -1.0, math.pi / 6)  # world: still, at (2, -1) facing 30 deg ccw from east
     fix = wait_for(lambda: (f := d.position_fix()) and f[0] == pytest.approx(2.0, abs=1e-4) and f, 1.0)
     assert fix, d.position_fix()
-    assert fix[1] == pytest.approx(-1.0, abs=1e-4) and same_angle(fix[2], math.pi / 6, 1e-5)
+    assert fix[1] == pytest.approx(-1.0, abs=1e-4) and fix[2] == d.config.position_std
+    assert wait_for(lambda: (o := d.read()) and same_angle(o.pose[2], math.pi / 6, 1e-5), 1.0), d.read()
     yaw_ned0 = world_to_ned(*sim.pose)[2]
     d.command(0.5, 0.4)
     assert wait_for(lambda: sim.body_velocity() == pytest.approx((0.5, 0.4), abs=1e-6), 1.0), sim.body_velocity()
@@ -251,7 +252,8 @@ def test_command_signs_odometry_and_position_fix(rig):
     time.sleep(0.25)
     yaw_ned1 = world_to_ned(*sim.pose)[2]
     assert math.remainder(yaw_ned1 - yaw_ned0, 2 * math.pi) < -0.1  # w > 0: NED yaw decreases
-    x, y, yaw, _ = d.position_fix()
+    x, y, _, _ = d.position_fix()
+    yaw = d.read().pose[2]
     sx, sy, syaw = sim.pose
     assert (x, y) == pytest.approx((sx, sy), abs=0.1) and same_angle(yaw, syaw, 0.1)
     d.command(-0.3, -0.5)  # reverse, turning clockwise

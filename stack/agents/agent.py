@@ -22,7 +22,7 @@ import numpy as np
 import zenoh
 
 from ..comm import Keys, MessageError, RadioModel, decode, encode, receive
-from ..comm.messages import Clock, Diag, Fix, Scan, State, WorldStatus
+from ..comm.messages import Answer, Clock, Diag, Fix, Scan, State, WorldStatus
 from ..comm.radio import config_from_scenario
 from ..drivers import Driver, DriverLimits, make_driver
 from ..estimation import EkfConfig, PoseEKF
@@ -37,6 +37,7 @@ NEIGHBOUR_WAIT_S = 1.0  # lock-step: how long to wait for a neighbour's state of
 JUMP_TOLERANCE_M = 2.0  # a neighbour's state may move this much beyond what its v_max allows (estimate corrections)
 STALE_AFTER_S = 3.0  # a neighbour not heard for this long is left out of the formation logic
 SENSOR_STALE_S = 0.5  # real time: no new scan and odometry for this long -> zero velocity
+DEVICE_ODOM_WAIT_S = 0.05  # lock-step: how long (wall) a step waits for a device's odometry sample to catch up
 
 
 @dataclass
@@ -94,6 +95,9 @@ class Agent:
         self.state_latency = LatencyHistogram()
         self.fault = ""
         self._odo_step = -1
+        self._odom_count = 0  # odometry samples the driver has delivered
+        self._odom_used = 0  # ... of which the newest was in the last control step
+        self._driver_fix = None  # the driver's newest position fix taken by the estimator
         self.sensor_stale = 0
 
         x, y, yaw = self.robot.pose
@@ -152,6 +156,7 @@ class Agent:
     def _on_odom(self, _odo) -> None:
         with self._cv:
             self._odom_arrival = time.perf_counter()
+            self._odom_count += 1
             self._cv.notify_all()
 
     def _on_scan(self, sample: zenoh.Sample) -> None:
@@ -236,6 +241,7 @@ class Agent:
         s = self.session
         self._state_pub = s.declare_publisher(k.robot(self.id, "state"), congestion_control=zenoh.CongestionControl.BLOCK)
         self._diag_pub = s.declare_publisher(k.robot(self.id, "diag"), congestion_control=zenoh.CongestionControl.BLOCK)
+        self._answer_pub = s.declare_publisher(k.robot(self.id, "answer"), congestion_control=zenoh.CongestionControl.BLOCK)
         subs = [
             s.declare_subscriber(k.robot(self.id, "scan"), self._on_scan),
             s.declare_subscriber(k.robot(self.id, "fix"), self._on_fix),
@@ -291,7 +297,7 @@ class Agent:
                 if self.cfg.stop.is_set():
                     return None
                 scan, odo = self._scan, self.driver.read()
-                if scan is not None and odo is not None and scan.step > self.step and odo.step == scan.step \
+                if scan is not None and odo is not None and scan.step > self.step and self._odometry_of(scan, odo) \
                         and (not lockstep or self._complete(scan.step, odo)):
                     break
                 if time.monotonic() > deadline:
@@ -323,6 +329,17 @@ class Agent:
                 self.sim_now = max(self.sim_now, scan.stamp)
             return k
 
+    def _odometry_of(self, scan: Scan, odo) -> bool:
+        """Is ``odo`` the odometry to go with ``scan``? A simulated base's carries the step; a device's
+        (CAN encoders, a rover's telemetry, a bridged base's odometry topic) does not: in lock-step the
+        world sent it just before the step's sensors, so we give it a moment to arrive (bounded:
+        a device that skipped a sample must not stall the fleet), and in real time the newest will do."""
+        if odo.step >= 0:
+            return odo.step == scan.step
+        if not self.cfg.lockstep:
+            return True
+        return self._odom_count > self._odom_used or time.perf_counter() - self._scan_arrival > DEVICE_ODOM_WAIT_S
+
     def _complete(self, k: int, odo) -> bool:
         """Lock-step: step k's gyro rate and (when one is due) position fix are in too; zenoh keeps
         order per key, not across keys, so waiting on the scan alone would race."""
@@ -338,6 +355,7 @@ class Agent:
         with self._cv:
             scan = self._scan
             odo = self.driver.read()
+            self._odom_used = self._odom_count
             fix, self._fix = self._fix, None
             t_sensor = max(self._scan_arrival, self._odom_arrival)
             k = scan.step
@@ -354,6 +372,12 @@ class Agent:
             dead = set(clock.dead) if self.cfg.lockstep and clock is not None else set(self._dead)
         dead.discard(self.id)
         t_run = k * self.dt
+        if odo.step < 0:  # a device's odometry: the newest, for this step
+            odo = replace(odo, step=k)
+        if self.driver.fault and not self.fault:
+            self.fault = f"{self.driver.name} driver: {self.driver.fault}"
+            log.error("agent %d: %s: the robot is stopped (zero velocity) from t=%.1f s", self.id, self.fault, t_run)
+            self._publish_diag("fault")
         for rid in dead - self.gone:
             self.noticed[rid] = t_run
             log.info("agent %d: robot %d gone at t=%.1f s", self.id, rid, t_run)
@@ -379,6 +403,11 @@ class Agent:
             self._odo_step = odo.step
         if fix is not None:
             if ekf.update_fix(fix.x, fix.y, fix.std):
+                self.fixes_used += 1
+        dfix = self.driver.position_fix()  # e.g. a rover autopilot's own position estimate (LOCAL_POSITION_NED)
+        if dfix is not None and dfix is not self._driver_fix:
+            self._driver_fix = dfix
+            if ekf.update_fix(dfix[0], dfix[1], dfix[2]):
                 self.fixes_used += 1
         pose = ekf.pose
 
@@ -426,6 +455,8 @@ class Agent:
         self._state_pub.put(encode(st))
         self.sent += 1
         self.driver.command(v, w, step=k)
+        if self.cfg.lockstep and not self.driver.answers_steps:  # the command went over the device's wire
+            self._answer_pub.put(encode(Answer(id=self.id, step=k, stamp=self._stamp())))
         self.hist.add((time.perf_counter() - t_sensor) * 1000.0)
         if k % 10 == 0:
             self._publish_diag("running")

@@ -56,6 +56,15 @@ class CmdVel(_Msg):
     w: float
 
 
+class Answer(_Msg):
+    """``.../answer``: lock-step only: the agent has commanded step ``step`` through a driver whose wire
+    carries no step (a hosted device: CAN, MAVLink, a bridged ROS 2 base); its command is on that wire."""
+
+    id: int
+    step: int
+    stamp: float
+
+
 class Odom(_Msg):
     """``.../odom``: wheel odometry, body-frame speeds measured by the encoders, and the pose the
     base integrated from them (as a real base's odometry topic carries; None if it has none)."""

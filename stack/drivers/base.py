@@ -21,6 +21,7 @@ import threading
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from typing import Callable
 
 log = logging.getLogger(__name__)
 
@@ -48,11 +49,38 @@ class DriverLimits:
     cmd_timeout: float = 0.5  # [s] a command older than this is replaced by zero
 
 
+class Periodic:
+    """Something a device needs at least every ``period`` (a keep-alive, a GCS heartbeat).
+
+    Due when ``period`` has passed on the driver's clock *or* on the wall clock. In lock-step
+    the driver's clock is sim time, which stands still while the world waits for the fleet and
+    may run faster than the wall once it steps; the device behind the wire (its watchdog, its
+    failsafe) keeps its own time. Sending by whichever clock says so first feeds it either way;
+    an extra keep-alive only repeats the last command.
+    """
+
+    def __init__(self, period: float, clock: Callable[[], float], wall: Callable[[], float] = time.monotonic):
+        self.period = period
+        self._clock = clock
+        self._wall = wall
+        self._next = self._next_wall = -math.inf
+
+    def due(self) -> bool:
+        return self._clock() >= self._next or self._wall() >= self._next_wall
+
+    def done(self) -> None:
+        """It was sent now: the next one is due a period later on both clocks."""
+        self._next = self._clock() + self.period
+        self._next_wall = self._wall() + self.period
+
+
 class Driver(ABC):
     """Base of every driver. Subclasses never clamp, never time out, never forget the final zero."""
 
     name = "base"
     has_imu = False  # True: read() pairs each odometry sample with the gyro rate of the same step
+    answers_steps = False  # True: its commands carry the lock-step step number to the world (``sim``)
+    config_class: type | None = None  # the dataclass of its settings (the scenario's ``<driver>:`` block)
 
     def __init__(self, robot_id: int, limits: DriverLimits, clock=time.monotonic):
         self.robot_id = robot_id
@@ -135,6 +163,11 @@ class Driver(ABC):
     def read(self) -> Odometry | None:
         """The newest odometry, or None before the first sample."""
         return self._read()
+
+    def position_fix(self) -> tuple[float, float, float, float] | None:
+        """The device's own absolute position estimate ``(x, y, std, stamp)`` in the world frame, where
+        it has one (a rover's autopilot); None otherwise. The agent's estimator takes each new one."""
+        return None
 
     @property
     def last_sent(self) -> tuple[float, float]:

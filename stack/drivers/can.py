@@ -28,7 +28,7 @@ from typing import Any, Callable, Mapping
 import can
 
 from . import odrive
-from .base import Driver, DriverError, DriverLimits, Odometry
+from .base import Driver, DriverError, DriverLimits, Odometry, Periodic
 
 log = logging.getLogger(__name__)
 
@@ -153,6 +153,7 @@ class CanDriver(Driver):
     """
 
     name = "can"
+    config_class = CanConfig
 
     def __init__(self, robot_id: int, limits: DriverLimits, config: CanConfig | None = None, *,
                  bus: can.BusABC | None = None, clock: Callable[[], float] = time.monotonic,
@@ -182,7 +183,7 @@ class CanDriver(Driver):
         self._latest: Odometry | None = None
         self._armed = False  # supervising: both axes reached closed loop
         self._motor_cmd = (0.0, 0.0)  # [rev/s] what the keepalive resends
-        self._next_keepalive = 0.0
+        self._keepalive = Periodic(self.config.keepalive_period, self._clock)
         self._supervisor: threading.Thread | None = None
         self._halt = threading.Event()
 
@@ -210,7 +211,7 @@ class CanDriver(Driver):
         except BaseException:
             self._teardown()
             raise
-        self._next_keepalive = self._clock() + cfg.keepalive_period
+        self._keepalive.done()
         self._supervisor = threading.Thread(target=self._supervise, name=f"can-supervisor-{self.robot_id}", daemon=True)
         self._supervisor.start()
 
@@ -285,7 +286,7 @@ class CanDriver(Driver):
 
     def _send_motor(self) -> None:
         """Put the current motor command on the wire (caller holds _cmd_lock)."""
-        self._next_keepalive = self._clock() + self.config.keepalive_period
+        self._keepalive.done()
         for axis, vel in zip((self.left, self.right), self._motor_cmd):
             self._tx(odrive.encode("Set_Input_Vel", axis.node_id, Input_Vel=vel, Input_Torque_FF=0.0))
 
@@ -366,7 +367,7 @@ class CanDriver(Driver):
 
     # --- supervision ------------------------------------------------------------------
     def _supervise(self) -> None:
-        """Heartbeat timeout and keepalive, on the driver's clock."""
+        """Heartbeat timeout on the driver's clock; the keepalive by it or the wall clock (``Periodic``)."""
         cfg = self.config
         period = min(0.02, cfg.heartbeat_timeout / 5, cfg.keepalive_period / 2)
         while not self._halt.wait(period):
@@ -376,7 +377,7 @@ class CanDriver(Driver):
                          if a.hb_time is not None and now - a.hb_time > cfg.heartbeat_timeout]
             if stale:
                 self._trip("; ".join(f"{a.label}: no heartbeat for {age:.2f} s" for a, age in stale))
-            if self.fault is None and now >= self._next_keepalive:
+            if self.fault is None and self._keepalive.due():
                 try:
                     with self._cmd_lock:
                         if self.fault is None:

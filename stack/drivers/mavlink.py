@@ -12,7 +12,7 @@ A command becomes one ``SET_POSITION_TARGET_LOCAL_NED`` in ``MAV_FRAME_BODY_NED`
 mask 1511 (forward velocity + yaw rate): ``vx = v``, ``yaw_rate = -w`` (NED turns clockwise,
 our ``w`` counter-clockwise); the last one is resent every ``keepalive_period`` (the rover
 stops 3 s after its last target). ``read()`` turns the newest ``LOCAL_POSITION_NED`` +
-``ATTITUDE`` pair into body speeds; ``position_fix()`` gives the vehicle's own position
+``ATTITUDE`` pair into body speeds (and the vehicle's pose); ``position_fix()`` gives the vehicle's own position
 estimate in our world frame, for the agent's estimator.
 
 A fault (the vehicle's heartbeat missing for ``heartbeat_timeout``, the vehicle leaving
@@ -43,7 +43,7 @@ from typing import Any, Callable
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from .base import Driver, DriverError, DriverLimits, Odometry
+from .base import Driver, DriverError, DriverLimits, Odometry, Periodic
 
 log = logging.getLogger(__name__)
 
@@ -162,6 +162,8 @@ class MavlinkConfig:
     """[Hz] requested rate of LOCAL_POSITION_NED (forward speed, position fix)."""
     attitude_rate: float = 10.0
     """[Hz] requested rate of ATTITUDE (heading, yaw rate)."""
+    position_std: float = 0.3
+    """[m] standard deviation of the vehicle's own position estimate (LOCAL_POSITION_NED), for the agent's estimator."""
 
     def __post_init__(self):
         c = self.connection
@@ -175,7 +177,7 @@ class MavlinkConfig:
         if not (isinstance(self.command_retries, int) and self.command_retries >= 0):
             raise ValueError(f"mavlink driver: command_retries must be a whole number >= 0, not {self.command_retries!r}")
         for name in ("baud", "heartbeat_period", "heartbeat_timeout", "connect_timeout", "ack_timeout", "mode_timeout",
-                     "arm_timeout", "keepalive_period", "position_rate", "attitude_rate"):
+                     "arm_timeout", "keepalive_period", "position_rate", "attitude_rate", "position_std"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"mavlink driver: {name} must be a positive number, not {value!r}")
@@ -195,6 +197,7 @@ class MavlinkDriver(Driver):
     """
 
     name = "mavlink"
+    config_class = MavlinkConfig
 
     def __init__(self, robot_id: int, limits: DriverLimits, config: MavlinkConfig | None = None, *,
                  clock: Callable[[], float] = time.monotonic, stamp: Callable[[], float] = time.time,
@@ -236,7 +239,7 @@ class MavlinkDriver(Driver):
         self._active = False  # supervising: GUIDED and armed by us
         self._taken_over = False  # someone else took the vehicle out of GUIDED (or disarmed it)
         self._target = (0.0, 0.0)
-        self._next_keepalive = 0.0
+        self._keepalive = Periodic(self.config.keepalive_period, self._clock)
         self._boot = time.monotonic()
 
     # --- lifecycle --------------------------------------------------------------------
@@ -282,7 +285,7 @@ class MavlinkDriver(Driver):
             self._teardown()
             raise
         with self._cmd_lock:
-            self._next_keepalive = self._clock() + cfg.keepalive_period
+            self._keepalive.done()
 
     def _wait_heartbeat(self) -> None:
         cfg = self.config
@@ -367,7 +370,7 @@ class MavlinkDriver(Driver):
         """Put the current target on the wire (caller holds _cmd_lock)."""
         cfg = self.config
         v, w = self._target
-        self._next_keepalive = self._clock() + cfg.keepalive_period
+        self._keepalive.done()
         self._tx(self._encoder().set_position_target_local_ned_encode(
             self._boot_ms(), cfg.target_system, cfg.target_component, mav.MAV_FRAME_BODY_NED, TYPE_MASK_VEL_YAW_RATE,
             0.0, 0.0, 0.0, v, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, yaw_rate_ned(w)))
@@ -537,8 +540,10 @@ class MavlinkDriver(Driver):
             self._pos_fresh = self._att_fresh = False
             p, a = self._pos, self._att
             stamp = self._stamp()
-            odo = self._latest = Odometry(v=forward_speed(p.vx, p.vy, a.yaw), w=yaw_rate_ned(a.yawspeed), stamp=stamp)
-            self._fix = (*ned_to_world(p.x, p.y, a.yaw), stamp)
+            pose = ned_to_world(p.x, p.y, a.yaw)
+            odo = self._latest = Odometry(v=forward_speed(p.vx, p.vy, a.yaw), w=yaw_rate_ned(a.yawspeed), stamp=stamp,
+                                          pose=pose)
+            self._fix = (pose[0], pose[1], self.config.position_std, stamp)
         if self._on_odom is not None:
             self._on_odom(odo)
 
@@ -547,7 +552,8 @@ class MavlinkDriver(Driver):
             return self._latest
 
     def position_fix(self) -> tuple[float, float, float, float] | None:
-        """The vehicle's newest own position estimate in our world frame: (x, y, yaw, stamp), or None before one."""
+        """The vehicle's newest own position estimate in our world frame: (x, y, position_std, stamp), or None
+        before one (its heading is in ``read().pose``)."""
         with self._state:
             return self._fix
 
@@ -564,21 +570,22 @@ class MavlinkDriver(Driver):
 
     # --- supervision ------------------------------------------------------------------
     def _supervise(self) -> None:
-        """Our heartbeat, the vehicle's heartbeat timeout and the keepalive, on the driver's clock."""
+        """The vehicle's heartbeat timeout on the driver's clock; our heartbeat and the keepalive by it
+        or the wall clock, whichever is first (``Periodic``: the FS_GCS failsafe keeps the vehicle's time)."""
         cfg = self.config
         period = min(0.02, cfg.keepalive_period / 2, cfg.heartbeat_period / 2)
-        next_hb = self._clock()
+        gcs_heartbeat = Periodic(cfg.heartbeat_period, self._clock)
         while not self._halt.is_set():
             now = self._clock()
             try:
-                if now >= next_hb:
-                    next_hb = now + cfg.heartbeat_period
+                if gcs_heartbeat.due():
+                    gcs_heartbeat.done()
                     self._send_heartbeat()
                 with self._state:
                     age = None if not self._active or self._hb_time is None else now - self._hb_time
                 if age is not None and age > cfg.heartbeat_timeout:
                     self._trip(f"no HEARTBEAT from system {cfg.target_system} for {age:.1f} s")
-                if self.fault is None and now >= self._next_keepalive:
+                if self.fault is None and self._keepalive.due():
                     with self._cmd_lock:
                         if self.fault is None and self._active:
                             self._send_target()

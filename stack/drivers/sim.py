@@ -22,6 +22,7 @@ from .base import Driver, DriverLimits, Odometry
 class SimDriver(Driver):
     name = "sim"
     has_imu = True
+    answers_steps = True
 
     def __init__(self, robot_id: int, limits: DriverLimits, *, session: zenoh.Session, keys: Keys,
                  stamp: Callable[[], float] = time.time, on_malformed: Callable[[str], None] | None = None,

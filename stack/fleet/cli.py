@@ -85,6 +85,8 @@ def parser() -> argparse.ArgumentParser:
                    help="SIGSTOP robot ID's agent at sim time T (a hung process: its driver watchdog stops the robot)")
     r.add_argument("--restart", type=_fault_at, action="append", default=[], metavar="ID@T",
                    help="start robot ID's agent again at sim time T (after a --kill or --freeze: it rejoins)")
+    r.add_argument("--device-fault", type=_fault_at, action="append", default=[], metavar="ID@T",
+                   help="robot ID's simulated device fails at sim time T (CAN: heartbeats stop; MAVLink: HOLD; Jackal: odometry stops)")
     r.add_argument("--connect", metavar="EP", help="join this (site) router instead of starting one")
     r.add_argument("--external-agents", action="store_true",
                    help="start no agents: they run elsewhere (stack-agent on each robot); wait for their tokens")
@@ -114,9 +116,13 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
     missing = sorted({r.policy for r in sc.robots} - set(available_policies()))
     if missing:
         raise ScenarioError(f"{a.scenario}: policy {', '.join(missing)} is not implemented yet (available: {', '.join(available_policies())})")
-    drivers = sorted({r.driver for r in sc.robots} - {"sim"})
+    from ..drivers import BACKENDS
+    from ..sim_bridge.devices import DEVICES
+
+    hostable = sorted(set(BACKENDS) & (set(DEVICES) | {"sim"}))
+    drivers = sorted({r.driver for r in sc.robots} - set(hostable))
     if drivers:
-        raise ScenarioError(f"{a.scenario}: driver {', '.join(drivers)} is not implemented yet (available: sim)")
+        raise ScenarioError(f"{a.scenario}: driver {', '.join(drivers)} is not implemented yet (available: {', '.join(hostable)})")
     ids = set(sc.ids)
     faults = []
     for kind in FAULT_KINDS:
@@ -126,6 +132,12 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
             if t > sc.duration:
                 raise ScenarioError(f"--{kind} {rid}@{t:g}: after the run's end ({sc.duration:g} s)")
             faults.append((kind, rid, t))
+    for rid, t in a.device_fault:
+        if rid not in ids or sc.robot(rid).driver == "sim":
+            raise ScenarioError(f"--device-fault {rid}@{t:g}: robot {rid} has no simulated device "
+                                f"(robots with one: {', '.join(str(r.id) for r in sc.robots if r.driver != 'sim') or 'none'})")
+        if t > sc.duration:
+            raise ScenarioError(f"--device-fault {rid}@{t:g}: after the run's end ({sc.duration:g} s)")
     if a.listen:
         check_endpoint(a.listen)
         if not re.fullmatch(r"tcp/[^#?]+:\d+", a.listen):
@@ -148,6 +160,7 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
     if out.exists() and not out.is_dir():
         raise ScenarioError(f"--out {out}: exists and is not a folder")
     return FleetConfig(scenario=sc, out=out, realtime=a.realtime, gui=a.gui, listen=a.listen, faults=faults,
+                       device_faults=a.device_fault,
                        progress=not a.no_progress, plots=not a.no_plots, connect=a.connect,
                        external_agents=a.external_agents, wait_agents_s=a.wait_agents, fleet=a.fleet,
                        zenoh_config=a.zenoh_config, allow_remote=a.allow_remote)

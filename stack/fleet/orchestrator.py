@@ -8,6 +8,7 @@ writes ``report.json`` and the plots.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import signal
@@ -25,7 +26,7 @@ from ..comm import Keys, receive
 from ..comm import encode
 from ..comm.messages import Clock, Diag, FaultAck, FaultRequest, State, WorldStatus
 from ..comm.session import SessionConfig, SessionError, free_tcp_endpoint, open_session
-from ..scenario import Scenario
+from ..scenario import Scenario, with_driver_settings
 from .report import build_report
 
 log = logging.getLogger("stack.fleet")
@@ -52,6 +53,8 @@ class FleetConfig:
     """(kind, robot id, sim time): ``kill`` (SIGKILL the agent), ``freeze`` (SIGSTOP it), ``restart``
     (start it again). The world asks for each at the first step at or after its time and waits
     until it is done, so lock-step runs with faults are repeatable."""
+    device_faults: list[tuple[int, float]] = field(default_factory=list)
+    """(robot id, sim time): that robot's simulated device fails (the world does it; the driver must notice)."""
     fleet: str | None = None
     """Fleet name (key prefix); derived from the out folder when None."""
     progress: bool = True
@@ -138,6 +141,24 @@ def _stop_all(procs: list[_Proc], timeout: float) -> None:
         except subprocess.TimeoutExpired:
             pr.signal(signal.SIGKILL)
             pr.p.wait(5)
+
+
+def _agents_scenario(sc: Scenario, out: Path, world: _Proc, timeout: float = 30.0) -> Path:
+    """Wait for the world's ``devices.json`` and write the scenario the agents read: the resolved one
+    with each hosted robot's driver settings pointing at its simulated device (pty, UDP port, keys)."""
+    path = out / "devices.json"
+    deadline = time.monotonic() + timeout
+    while not path.exists():
+        if world.poll() is not None:
+            raise TimeoutError(f"the world exited with code {world.poll()} before its simulated devices were up")
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"the world did not bring up its simulated devices within {timeout:.0f} s")
+        time.sleep(0.05)
+    devices = json.loads(path.read_text())
+    agents = with_driver_settings(sc, {int(rid): d["settings"] for rid, d in devices.items()})
+    target = out / "scenario.agents.yaml"
+    target.write_text(agents.to_yaml())
+    return target
 
 
 class _Abort(Exception):
@@ -286,9 +307,21 @@ def run_fleet(cfg: FleetConfig) -> tuple[int, dict]:
                 world_argv.append("--gui")
             for kind, rid, at in cfg.faults:
                 world_argv += ["--" + kind, f"{rid}@{at:g}"]
+            for rid, at in cfg.device_faults:
+                world_argv += ["--device-fault", f"{rid}@{at:g}"]
             procs["world"] = _Proc("world", world_argv, out / "logs" / "world.log", env)
+            agents_scenario = resolved
+            if any(r.driver != "sim" for r in sc.robots) and not cfg.external_agents:
+                # robots on simulated hardware: their drivers go where the world put each device
+                try:
+                    agents_scenario = _agents_scenario(sc, out, procs["world"])
+                except TimeoutError as e:
+                    crashed.append({"process": "world", "exit_code": procs["world"].poll(), "sim_time_s": 0.0,
+                                    "log_tail": f"{e}: {procs['world'].tail(3)}"})
+                    raise _Abort from None
+
             def start_agent(r, log_name: str) -> _Proc:
-                argv = [py, "-m", "stack.agents", "--id", str(r.id), "--scenario", str(resolved), "--connect", endpoint,
+                argv = [py, "-m", "stack.agents", "--id", str(r.id), "--scenario", str(agents_scenario), "--connect", endpoint,
                         "--fleet", fleet, "--log-level", "INFO", *remote, *zconf]
                 if r.role:
                     argv += ["--role", r.role]

@@ -154,6 +154,7 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
             "estimator_inputs_rejected": d.inputs_rejected if d is not None else None,
             "sensor_stale_stops": d.sensor_stale if d is not None else None,
             "states_rejected": d.rejected_states if d is not None else None,
+            "driver_fault": (d.fault or None) if d is not None else None,
             "neighbour_waits_timed_out": d.neighbour_waits_timed_out if d is not None else None,
             "led_since_s": d.led_since if d is not None else None,
             "alive_at_end": bool(alive[-1, j]),
@@ -199,7 +200,7 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
     collided = (rr + ro) > 0
     success = bool(reached and not (sc.success.no_collisions and collided) and not crashed)
 
-    faults = _fault_details(faults, diags, f)
+    faults = _fault_details(faults, diags, f) + _device_faults(world, diags, t, z["v"], idx)
 
     report = {
         "scenario": sc.name,
@@ -253,6 +254,23 @@ def _empty_report(sc: Scenario, wall: float, faults: list, crashed: list) -> dic
             "comm": {"sent": 0, "delivered": 0, "dropped_loss": 0, "dropped_range": 0},
             "control_loop_ms": {"p50": None, "p99": None}, "faults": faults, "crashed": crashed,
             "end_reason": "no world log"}
+
+
+def _device_faults(world: dict, diags: dict, t: np.ndarray, V: np.ndarray, idx: dict[int, int]) -> list:
+    """Each injected device failure (``--device-fault``): what the driver said (``driver_fault``) and how
+    long until the robot stood still (``stopped_s``: speed under 0.05 m/s from then on)."""
+    out = []
+    for e in world.get("events", []):
+        if e.get("event") != "device fault":
+            continue
+        rid, t0 = e["robot"], e["t"]
+        d = diags.get(rid)
+        moving = np.nonzero((t >= t0) & (np.abs(V[:, idx[rid]]) >= 0.05))[0]
+        stopped = t0 if moving.size == 0 else (float(t[moving[-1] + 1]) if moving[-1] + 1 < len(t) else None)
+        out.append({"robot": rid, "kind": "device_fault", "what": e.get("what"), "sim_time_s": t0,
+                    "driver_fault": (d.fault or None) if d is not None else None,
+                    "stopped_s": None if stopped is None else round(stopped - t0, 3)})
+    return out
 
 
 def _fault_details(faults: list, diags: dict, f) -> list:

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from ..comm.session import EndpointError, SessionConfig, SessionError, check_endpoint, open_session
 from ..scenario import FAULT_KINDS, ScenarioError, load_scenario, parse_fault_at
+from .devices import DeviceError
 from .server import WorldConfig, WorldServer
 
 log = logging.getLogger("stack.world")
@@ -26,6 +27,9 @@ def main(cfg: WorldConfig) -> int:
         except TimeoutError as e:
             print(f"world: {e}", file=sys.stderr)
             return 1
+        except DeviceError as e:
+            print(f"world: {e}", file=sys.stderr)
+            return 2
         except KeyboardInterrupt:
             return 0
     server.write_result(result)
@@ -48,6 +52,8 @@ def cli(argv: list[str] | None = None) -> int:
     ap.add_argument("--log-level", default="WARNING")
     ap.add_argument("--zenoh-config", metavar="FILE", help="zenoh json5 config layered under ours (deploy/)")
     ap.add_argument("--allow-remote", action="store_true", help="allow a router endpoint off loopback")
+    ap.add_argument("--device-fault", type=_fault_at, action="append", default=[], metavar="ID@T",
+                    help="robot ID's simulated device fails at sim time T")
     for kind in FAULT_KINDS:
         ap.add_argument(f"--{kind}", type=_fault_at, action="append", default=[], metavar="ID@T",
                         help=f"ask for a {kind} of robot ID's agent at sim time T (on world/fault)")
@@ -62,7 +68,7 @@ def cli(argv: list[str] | None = None) -> int:
     cfg = WorldConfig(scenario=sc, connect=a.connect, fleet=a.fleet, out=a.out, realtime=a.realtime, gui=a.gui,
                       wait_agents_s=a.wait_agents, lockstep_timeout_s=a.lockstep_timeout, duration=a.duration,
                       stop_early=not a.no_stop_early, zenoh_config=a.zenoh_config, allow_remote=a.allow_remote,
-                      faults=[(kind, rid, t) for kind in FAULT_KINDS for rid, t in getattr(a, kind)])
+                      device_faults=a.device_fault, faults=[(kind, rid, t) for kind in FAULT_KINDS for rid, t in getattr(a, kind)])
     return main(cfg)
 
 

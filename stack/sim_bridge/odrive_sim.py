@@ -244,11 +244,24 @@ class ODrivePair:
         Frames received since the last step take effect at its start (a zero-order hold:
         a lock-step world's command acts over the whole next step).
         """
+        self.receive(t_now)
+        self.send(self.advance(t_now))
+
+    def receive(self, t_now: float) -> None:
+        """Handle every frame received so far, at ``t_now`` (replies go out at once)."""
         with self._lock:
             while (msg := self.bus.recv(0.0)) is not None:
                 self._handle(msg, t_now)
-            for axis in self.axes.values():
-                self._send_all(axis.advance(t_now))
+
+    def advance(self, t_now: float) -> list[can.Message]:
+        """Advance the axes to ``t_now``; the periodic frames due by then, for ``send`` (a world sends
+        them once it has moved the body, so they describe the body at ``t_now``)."""
+        with self._lock:
+            return [m for axis in self.axes.values() for m in axis.advance(t_now)]
+
+    def send(self, msgs: list[can.Message]) -> None:
+        with self._lock:
+            self._send_all(msgs)
 
     def _handle(self, msg: can.Message, t: float) -> None:
         try:

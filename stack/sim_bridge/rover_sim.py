@@ -149,6 +149,25 @@ class SimRover:
             self._advance(t_now)
             self._emit(t_now)
 
+    # the three parts of a step, for a world that moves the body between them
+    def receive(self, t_now: float) -> None:
+        """Handle every datagram received so far (targets act from ``t_now``)."""
+        with self._lock:
+            if not self._killed:
+                self._receive(t_now)
+
+    def advance(self, t_now: float) -> None:
+        """Ramp the body velocity to ``t_now`` (timeouts, failsafe)."""
+        with self._lock:
+            if not self._killed:
+                self._advance(t_now)
+
+    def emit(self, t_now: float) -> None:
+        """Send what is due by ``t_now`` (after ``set_pose``: telemetry of the body the world moved)."""
+        with self._lock:
+            if not self._killed:
+                self._emit(t_now)
+
     def _receive(self, t: float) -> None:
         while True:
             try:

@@ -9,6 +9,12 @@ answers again) or for the wall clock (real time), and advances.
 
 Each simulated base has its device watchdog in sim time: a robot whose last command is
 older than its ``cmd_timeout`` gets zero.
+
+A robot whose driver is not ``sim`` gets its simulated device (``devices.py``: an ODrive pair
+on an slcan pty, a rover autopilot on UDP, a bridged Jackal) before the world announces
+itself; ``devices.json`` in the run folder says where each one is, for the fleet to hand to
+the agents' drivers. Such an agent answers a lock-step step on ``.../answer`` (its command
+went over the device's own wire); the device moves the body.
 """
 
 from __future__ import annotations
@@ -24,8 +30,9 @@ import numpy as np
 import zenoh
 
 from ..comm import Keys, MessageError, decode, encode
-from ..comm.messages import Clock, CmdVel, FaultAck, FaultRequest, Fix, Imu, Odom, Scan, Truth, WorldStatus
+from ..comm.messages import Answer, Clock, CmdVel, FaultAck, FaultRequest, Fix, Imu, Odom, Scan, Truth, WorldStatus
 from ..scenario import Scenario, fix_due, slot_position
+from .devices import Body, HostedDevice, make_device
 from .world import World
 
 log = logging.getLogger("stack.world")
@@ -65,6 +72,8 @@ class WorldConfig:
     faults: list[tuple[str, int, float]] = field(default_factory=list)
     """(kind, robot id, sim time): faults to inject (kill, freeze, restart), asked of the orchestrator
     on ``world/fault`` at the first step at or after that time."""
+    device_faults: list[tuple[int, float]] = field(default_factory=list)
+    """(robot id, sim time): the robot's simulated device fails then (``HostedDevice.fail``)."""
     fault_timeout_s: float = 30.0
     """How long to wait (wall) for a fault to be carried out (ack; for a restart, the agent's token)."""
     stop: threading.Event = field(default_factory=threading.Event)
@@ -91,26 +100,44 @@ class WorldServer:
         self.t = 0.0
         self.k = 0
         self.late_steps = 0
+        self.devices: dict[int, HostedDevice] = {}  # robots whose driver talks to a simulated device
 
     # --- callbacks -------------------------------------------------------------------
-    def _on_cmd(self, sample: zenoh.Sample) -> None:
+    def _decode_answer(self, sample: zenoh.Sample, kind, hosted: bool):
+        """A command (``cmd_vel``, simulated bases) or an answer (``answer``, hosted devices) of a known robot."""
         rid = Keys.id_of(str(sample.key_expr))
         try:
-            m = decode(sample.payload.to_bytes(), CmdVel)
-            if rid is None or m.id != rid or rid not in self.world.index:
-                raise MessageError("cmd_vel for an unknown robot or a key that does not match its id")
+            m = decode(sample.payload.to_bytes(), kind)
+            if rid is None or m.id != rid or rid not in self.world.index or (rid in self.devices) != hosted:
+                raise MessageError("for an unknown robot, a key that does not match its id, or the wrong driver")
         except MessageError:
             with self._cv:
                 self.malformed += 1
+            return None
+        return m
+
+    def _on_cmd(self, sample: zenoh.Sample) -> None:
+        m = self._decode_answer(sample, CmdVel, hosted=False)
+        if m is not None:
+            with self._cv:
+                self.last_cmd[m.id] = (m.v, m.w, self.t, m.step)
+                self._answered(m.id, m.step, (m.v, m.w))
+
+    def _on_answer(self, sample: zenoh.Sample) -> None:
+        m = self._decode_answer(sample, Answer, hosted=True)
+        if m is not None:
+            with self._cv:
+                self._answered(m.id, m.step, None)  # the command itself is on the device's wire
+
+    def _answered(self, rid: int, step: int, cmd: tuple[float, float] | None) -> None:
+        """Robot ``rid`` has commanded ``step`` (caller holds the lock)."""
+        if step < 0:
             return
-        with self._cv:
-            self.last_cmd[rid] = (m.v, m.w, self.t, m.step)
-            if m.step >= 0:
-                got = self.cmds.setdefault(m.step, {})
-                got[rid] = (m.v, m.w)
-                self.unresponsive.discard(rid)
-                if m.step == self.k and len(got) >= len(self.alive - self.unresponsive):
-                    self._cv.notify_all()  # wake the loop once the step may be complete
+        got = self.cmds.setdefault(step, {})
+        got[rid] = cmd
+        self.unresponsive.discard(rid)
+        if step == self.k and len(got) >= len(self.alive - self.unresponsive):
+            self._cv.notify_all()  # wake the loop once the step may be complete
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         rid = Keys.id_of(str(sample.key_expr))
@@ -180,10 +207,13 @@ class WorldServer:
         status_pub = s.declare_publisher(k.world("status"), congestion_control=block)
         fault_pub = s.declare_publisher(k.world("fault"), congestion_control=block)
         subs = [s.declare_subscriber(k.all_robots("cmd_vel"), self._on_cmd),
+                s.declare_subscriber(k.all_robots("answer"), self._on_answer),
                 s.declare_subscriber(k.world("fault_ack"), self._on_ack),
                 s.liveliness().declare_subscriber(k.all_alive, self._on_alive, history=True)]
-        token = s.liveliness().declare_token(k.world("alive"))
+        token = None
         try:
+            self._start_devices()
+            token = s.liveliness().declare_token(k.world("alive"))
             status_pub.put(encode(WorldStatus(state="waiting")))
             self._wait_for_agents()
             status_pub.put(encode(WorldStatus(state="running")))
@@ -193,10 +223,33 @@ class WorldServer:
             self.linger(10.0)
             return result
         finally:
-            token.undeclare()
+            if token is not None:
+                token.undeclare()
             for sub in subs:
                 sub.undeclare()
+            for dev in self.devices.values():
+                dev.close()
             self.world.close()
+
+    def _start_devices(self) -> None:
+        """A simulated device for every robot whose driver is not ``sim``; ``devices.json`` says where."""
+        for r in self.sc.robots:
+            if r.driver == "sim":
+                continue
+            dev = make_device(r.driver, r, run_dir=self.cfg.out, session=self.s, keys=self.keys, seed=self.sc.seed)
+            self.devices[r.id] = dev  # closed by run() whatever happens next
+            dev.start()
+            log.info("world: robot %d: simulated %s device: %s", r.id, r.driver, dev.driver_params())
+        if self.cfg.out is not None:
+            self.cfg.out.mkdir(parents=True, exist_ok=True)
+            doc = {str(rid): {"driver": dev.kind, "settings": dev.driver_params()} for rid, dev in self.devices.items()}
+            tmp = self.cfg.out / "devices.json.tmp"
+            tmp.write_text(json.dumps(doc, indent=2))
+            tmp.replace(self.cfg.out / "devices.json")  # whole or not at all: the fleet reads it as soon as it exists
+
+    def _body(self, rid: int) -> Body:
+        w, i = self.world, self.world.index[rid]
+        return Body(float(w.x[i]), float(w.y[i]), float(w.yaw[i]), float(w.v[i]), float(w.w[i]))
 
     def _wait_for_agents(self) -> None:
         deadline = time.monotonic() + self.cfg.wait_agents_s
@@ -218,11 +271,20 @@ class WorldServer:
         answered: list[int] = []
         arrived_at: float | None = None
         end_reason = "duration"
+        for rid, dev in self.devices.items():
+            if not self.cfg.realtime:
+                dev.lockstep(0.0)  # from here the device lives on sim time
+            dev.report(0.0, self._body(rid))
         while True:
             self.t = self.k * dt
             stamp = self.t if not self.cfg.realtime else time.time()
             if self._pending_faults:
                 self._inject_faults(fault_pub)
+            for rid, at in self.cfg.device_faults:
+                if at <= self.t + 1e-9 and not any(e.get("event") == "device fault" and e["robot"] == rid for e in self.events):
+                    what = self.devices[rid].fail()
+                    log.warning("world: t=%.1f s: robot %d's device fails: %s", self.t, rid, what)
+                    self.events.append({"t": self.t, "robot": rid, "event": "device fault", "what": what})
 
             with self._cv:
                 alive_now = set(self.alive)
@@ -252,9 +314,10 @@ class WorldServer:
             scans = w.lidar()
             for rid in self.ids:
                 i = w.index[rid]
-                v, om, (ox, oy, oyaw) = w.odometry(rid, dt)
-                pubs[(rid, "odom")].put(encode(Odom(id=rid, step=self.k, stamp=stamp, v=v, w=om, x=ox, y=oy, yaw=oyaw)))
-                pubs[(rid, "imu")].put(encode(Imu(id=rid, step=self.k, stamp=stamp, wz=w.gyro(rid))))
+                if rid not in self.devices:  # a hosted device sends its own odometry
+                    v, om, (ox, oy, oyaw) = w.odometry(rid, dt)
+                    pubs[(rid, "odom")].put(encode(Odom(id=rid, step=self.k, stamp=stamp, v=v, w=om, x=ox, y=oy, yaw=oyaw)))
+                    pubs[(rid, "imu")].put(encode(Imu(id=rid, step=self.k, stamp=stamp, wz=w.gyro(rid))))
                 robot = sc.robots[i]
                 if fix_due(robot, self.k, dt):
                     fx, fy = w.position_fix(rid, robot.fix[1])
@@ -277,6 +340,8 @@ class WorldServer:
                 answered = sorted(step_cmds)
                 commands = {}
                 for rid in self.ids:
+                    if rid in self.devices:
+                        continue  # below: the device moves the body
                     if not self.cfg.realtime and rid in step_cmds:
                         commands[rid] = step_cmds[rid]
                         continue
@@ -286,9 +351,14 @@ class WorldServer:
                     commands[rid] = (last[0], last[1]) if last is not None and self.t - last[2] <= timeout else (0.0, 0.0)
                 for old in [s for s in self.cmds if s < self.k]:
                     del self.cmds[old]
+            for rid, dev in self.devices.items():
+                dev.take_commands(self.t)
+                commands[rid] = dev.motion(self.t + dt)
             log_rows["cmd_v"].append(np.array([commands[r][0] for r in self.ids]))
             log_rows["cmd_w"].append(np.array([commands[r][1] for r in self.ids]))
-            w.step(commands, dt)
+            w.step(commands, dt, exact=self.devices.keys())
+            for rid, dev in self.devices.items():
+                dev.report(self.t + dt, self._body(rid))
             self.k += 1
 
         wall = time.monotonic() - wall0

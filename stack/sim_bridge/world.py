@@ -92,8 +92,11 @@ class World:
                                               p.getQuaternionFromEuler([0, 0, self.yaw[i]]), physicsClientId=self.cid)
 
     # --- dynamics ----------------------------------------------------------------------
-    def step(self, commands: dict[int, tuple[float, float]], dt: float) -> None:
-        """Advance by dt: commands -> wheel speeds (acceleration-limited) -> unicycle motion."""
+    def step(self, commands: dict[int, tuple[float, float]], dt: float, exact: frozenset[int] | set[int] = frozenset()) -> None:
+        """Advance by dt: commands -> wheel speeds (acceleration-limited) -> unicycle motion.
+
+        Robots in ``exact`` move with their (v, w) as given: a hosted device (an ODrive pair, a
+        rover's autopilot) already ramped its actuators, and the body follows them."""
         for rid, i in self.index.items():
             r = self.sc.robots[i]
             b = r.base
@@ -101,7 +104,7 @@ class World:
             # differential drive inverse kinematics: wheel angular speeds for (v, w)
             wl_t = (v_c - w_c * b.track / 2) / b.wheel_radius
             wr_t = (v_c + w_c * b.track / 2) / b.wheel_radius
-            dmax = b.wheel_accel * dt
+            dmax = math.inf if rid in exact else b.wheel_accel * dt
             self.wl[i] += max(-dmax, min(dmax, wl_t - self.wl[i]))
             self.wr[i] += max(-dmax, min(dmax, wr_t - self.wr[i]))
             v = b.wheel_radius * (self.wr[i] + self.wl[i]) / 2

@@ -1,0 +1,71 @@
+"""The ``mavlink`` robot's device: a simulated ArduPilot Rover autopilot on UDP loopback.
+
+The agent's ``mavlink`` driver connects with ``udpout:127.0.0.1:<port>`` as a companion
+computer would to a rover's telemetry port. The rover's controllers (GUIDED targets, speed
+and turn-rate ramps, the 3 s target timeout, the FS_GCS hold) decide the body speeds; the
+world moves the body and hands the pose back (``set_pose``), with the position noise of the
+vehicle's own estimate (the driver's ``position_std``), before the telemetry due goes out.
+The rover accelerates like the robot's simulated base (``base.wheel_accel`` x wheel radius).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..drivers.mavlink import MavlinkConfig
+from .devices import Body, DeviceError, HostedDevice
+from .rover_sim import SimRover
+
+
+class RoverDevice(HostedDevice):
+    kind = "mavlink"
+
+    def __init__(self, robot, **kw):
+        super().__init__(robot, **kw)
+        try:
+            self.config = MavlinkConfig(**robot.driver_params.get("mavlink", {}))
+        except (TypeError, ValueError) as e:
+            raise DeviceError(f"robot {robot.id}: {e}") from None
+        self.rng = np.random.default_rng([self.seed, robot.id, 7])
+        self.rover: SimRover | None = None
+
+    def start(self) -> None:
+        cfg, b = self.config, self.robot.base
+        accel = b.wheel_accel * b.wheel_radius
+        try:
+            self.rover = SimRover(("127.0.0.1", 0), system=cfg.target_system, component=cfg.target_component,
+                                  gcs_system=cfg.source_system, pose=self.robot.pose, integrate_pose=False,
+                                  accel_max=accel, yaw_accel_max=2.0 * accel / b.track, clock=self.wall_time)
+        except OSError as e:
+            raise DeviceError(f"robot {self.robot_id}: cannot bind the rover's UDP port on loopback: {e}") from None
+        self.rover.run_realtime()
+
+    def driver_params(self) -> dict:
+        return {"connection": f"udpout:127.0.0.1:{self.rover.port}"}
+
+    def take_commands(self, t_sim: float) -> None:
+        if self.in_lockstep:
+            self.rover.receive(self.device_time(t_sim))
+
+    def motion(self, t_sim_next: float) -> tuple[float, float]:
+        if self.in_lockstep:
+            self.rover.advance(self.device_time(t_sim_next))
+        return self.rover.body_velocity()
+
+    def report(self, t_sim_next: float, body: Body) -> None:
+        nx, ny = self.rng.normal(0.0, self.config.position_std, 2)
+        self.rover.set_pose(body.x + nx, body.y + ny, body.yaw, body.v, body.w)
+        if self.in_lockstep:
+            self.rover.emit(self.device_time(t_sim_next))
+
+    def fail(self) -> str:
+        self.rover.force_mode("HOLD")
+        return "the rover was switched to HOLD under the driver (a pilot's switch)"
+
+    def _stop_realtime(self) -> None:
+        if self.rover is not None:
+            self.rover.stop()
+
+    def close(self) -> None:
+        if self.rover is not None:
+            self.rover.kill()

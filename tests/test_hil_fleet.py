@@ -1,0 +1,74 @@
+"""Fleets on simulated hardware: the real CAN and MAVLink drivers against devices the world hosts.
+
+The agents' drivers are the ones that drive real robots (python-can over slcan on a pty,
+pymavlink over UDP loopback); only the ODrive pair and the rover autopilot are simulated, in
+the world process, bound to the pybullet bodies. A run on them must look like the same run
+on the ideal simulated base, and a failing device must stop its robot with a named fault.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from conftest import run_cli, run_fleet, scenario_dict, write_scenario
+
+
+@pytest.fixture(scope="module")
+def sim_run(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("sim")
+    proc, rep = run_fleet(write_scenario(tmp / "d.yaml", scenario_dict()), tmp / "out", "--no-plots")
+    assert proc.returncode == 0 and rep["success"], proc.stdout + proc.stderr
+    return rep
+
+
+def _same_run(rep: dict, ref: dict) -> None:
+    assert rep["success"], rep
+    assert rep["collisions"] == {"robot_robot": 0, "robot_obstacle": 0}
+    assert rep["leader_time_to_goal_s"] == pytest.approx(ref["leader_time_to_goal_s"], abs=1.5)
+    assert rep["formation_error_rms_m"] == pytest.approx(ref["formation_error_rms_m"], abs=0.1)
+    assert rep["min_robot_distance_m"] == pytest.approx(ref["min_robot_distance_m"], abs=0.2)
+    assert all(r["driver_fault"] is None for r in rep["robots"].values())
+
+
+@pytest.mark.parametrize("driver", ["can", "mavlink"])
+def test_fleet_on_simulated_hardware_matches_the_simulated_base(tmp_path, sim_run, driver):
+    proc, rep = run_fleet(write_scenario(tmp_path / "d.yaml", scenario_dict()), tmp_path / "out", "--driver", driver,
+                          "--no-plots")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert set(rep["drivers"].values()) == {driver}
+    _same_run(rep, sim_run)
+    devices = (tmp_path / "out" / "devices.json").read_text()
+    assert ("/dev/pts/" if driver == "can" else "udpout:127.0.0.1:") in devices
+    if driver == "mavlink":  # the autopilot's LOCAL_POSITION_NED feeds every estimator
+        for r in rep["robots"].values():
+            assert r["fixes"]["used"] > 100 and r["estimator_rmse_m"] < 0.15
+
+
+@pytest.mark.parametrize("driver, words", [("can", "no heartbeat"), ("mavlink", "HOLD")])
+def test_a_failing_device_stops_its_robot_with_a_named_fault(tmp_path, driver, words):
+    proc, rep = run_fleet(write_scenario(tmp_path / "d.yaml", scenario_dict()), tmp_path / "out", "--driver", driver,
+                          "--device-fault", "2@8", "--no-plots")
+    assert proc.returncode in (0, 1), proc.stdout + proc.stderr  # a fault to ride through, not a crash
+    (fault,) = [f for f in rep["faults"] if f["kind"] == "device_fault"]
+    assert fault["robot"] == 2 and fault["sim_time_s"] == pytest.approx(8.0)
+    assert words in fault["driver_fault"] and words in rep["robots"]["2"]["driver_fault"]
+    assert fault["stopped_s"] is not None and fault["stopped_s"] <= 0.5 + 1e-9
+    assert rep["collisions"]["robot_robot"] == 0
+    assert all(rep["robots"][str(r)]["driver_fault"] is None for r in (0, 1, 3))
+
+
+def test_bad_device_settings_and_flags_are_one_line_errors(tmp_path, diamond):
+    d = scenario_dict()
+    d["robots"][1] |= {"driver": "can", "can": {"node_left": 99}}
+    bad = write_scenario(tmp_path / "bad.yaml", d)
+    p = run_cli(["stack-fleet", "run", str(bad), "--out", str(tmp_path / "o1")])
+    assert p.returncode == 2 and "robots[1].can" in p.stderr and "node id 99" in p.stderr, p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1
+    d["robots"][1]["can"] = {"bogus": 1}
+    p = run_cli(["stack-fleet", "run", str(write_scenario(tmp_path / "bad2.yaml", d)), "--out", str(tmp_path / "o2")])
+    assert p.returncode == 2 and "robots[1].can.bogus: unknown field" in p.stderr, p.stderr
+    p = run_cli(["stack-fleet", "run", str(diamond), "--device-fault", "1@5", "--out", str(tmp_path / "o3")])
+    assert p.returncode == 2 and "--device-fault 1@5: robot 1 has no simulated device" in p.stderr, p.stderr
+    p = run_cli(["stack-fleet", "run", str(diamond), "--driver", "mavlink", "--device-fault", "1@500",
+                 "--out", str(tmp_path / "o4")])
+    assert p.returncode == 2 and "after the run's end" in p.stderr, p.stderr
