@@ -356,7 +356,7 @@ def test_axis_error_is_a_fault_naming_the_decoded_error(rig):
     rig.pair.inject_error(1, "DRV_FAULT")
     fault = wait_for(lambda: rig.driver.fault, 0.5)
     assert fault and fault.startswith("right axis (node 1): axis error DRV_FAULT"), fault
-    assert rig.driver.counters["estop"] == 2
+    assert wait_for(lambda: rig.driver.counters.get("estop") == 2, 0.5), rig.driver.counters  # sent just after the fault is set
 
 
 def test_open_fails_naming_the_axis_and_reason():

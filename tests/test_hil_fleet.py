@@ -32,16 +32,35 @@ def _same_run(rep: dict, ref: dict) -> None:
 
 @pytest.mark.parametrize("driver", ["can", "mavlink"])
 def test_fleet_on_simulated_hardware_matches_the_simulated_base(tmp_path, sim_run, driver):
+    extra = ["--can-log"] if driver == "can" else []
     proc, rep = run_fleet(write_scenario(tmp_path / "d.yaml", scenario_dict()), tmp_path / "out", "--driver", driver,
-                          "--no-plots")
+                          "--no-plots", *extra)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert set(rep["drivers"].values()) == {driver}
     _same_run(rep, sim_run)
     devices = (tmp_path / "out" / "devices.json").read_text()
     assert ("/dev/pts/" if driver == "can" else "udpout:127.0.0.1:") in devices
+    if driver == "can":  # every robot's bus, logged by python-can, decodes with the vendor's DBC
+        for rid in range(4):
+            kinds = _logged_messages(tmp_path / "out" / "logs" / f"can-{rid}.asc")
+            assert kinds["Set_Input_Vel"] > 200 and kinds["Heartbeat"] > 200 and kinds["Get_Encoder_Estimates"] > 200
+            assert kinds["Set_Axis_State"] >= 4  # closed loop at start, IDLE at the end, for both axes
     if driver == "mavlink":  # the autopilot's LOCAL_POSITION_NED feeds every estimator
         for r in rep["robots"].values():
             assert r["fixes"]["used"] > 100 and r["estimator_rmse_m"] < 0.15
+
+
+def _logged_messages(path) -> dict[str, int]:
+    import can
+
+    from stack.drivers import odrive
+
+    counts: dict[str, int] = {}
+    for m in can.LogReader(str(path)):
+        if not m.is_remote_frame and not m.is_error_frame:
+            name = odrive.decode(m, None).name
+            counts[name] = counts.get(name, 0) + 1
+    return counts
 
 
 @pytest.mark.parametrize("driver, words", [("can", "no heartbeat"), ("mavlink", "HOLD")])
@@ -72,3 +91,19 @@ def test_bad_device_settings_and_flags_are_one_line_errors(tmp_path, diamond):
     p = run_cli(["stack-fleet", "run", str(diamond), "--driver", "mavlink", "--device-fault", "1@500",
                  "--out", str(tmp_path / "o4")])
     assert p.returncode == 2 and "after the run's end" in p.stderr, p.stderr
+
+
+def test_mixed_fleet_one_driver_of_each_kind(tmp_path, sim_run):
+    """Leader on MAVLink, followers on CAN, a bridged Jackal and the simulated base: the same agent code."""
+    d = scenario_dict()
+    for r, driver in zip(d["robots"], ("mavlink", "can", "jackal", "sim")):
+        r["driver"] = driver
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "devices.json").write_text('{"1": {"driver": "can", "settings": {"channel": "/dev/pts/999"}}}')
+    (out / "truth.npz").write_bytes(b"left by an earlier run")  # a reused folder: none of it may be read
+    proc, rep = run_fleet(write_scenario(tmp_path / "mixed.yaml", d), out, "--no-plots")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert rep["drivers"] == {"0": "mavlink", "1": "can", "2": "jackal", "3": "sim"}
+    _same_run(rep, sim_run)
+    assert "/dev/pts/999" not in (out / "scenario.agents.yaml").read_text()

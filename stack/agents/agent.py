@@ -98,6 +98,7 @@ class Agent:
         self._odom_count = 0  # odometry samples the driver has delivered
         self._odom_used = 0  # ... of which the newest was in the last control step
         self._driver_fix = None  # the driver's newest position fix taken by the estimator
+        self.device_odom_late = 0  # lock-step steps that went on without a new sample from the device
         self.sensor_stale = 0
 
         x, y, yaw = self.robot.pose
@@ -355,6 +356,8 @@ class Agent:
         with self._cv:
             scan = self._scan
             odo = self.driver.read()
+            if odo.step < 0 and self.cfg.lockstep and self._odom_count == self._odom_used and self.step >= 0:
+                self.device_odom_late += 1
             self._odom_used = self._odom_count
             fix, self._fix = self._fix, None
             t_sensor = max(self._scan_arrival, self._odom_arrival)
@@ -493,5 +496,6 @@ class Agent:
                  fixes_rejected=self.estimator.rejected_fixes, inputs_rejected=self.estimator.rejected_nan,
                  sensor_stale=self.sensor_stale,
                  fault=self.fault, noticed=dict(self.noticed), led_since=self.led_since,
-                 rejected_states=self.rejected_states, neighbour_waits_timed_out=self.neighbour_waits_timed_out)
+                 rejected_states=self.rejected_states, neighbour_waits_timed_out=self.neighbour_waits_timed_out,
+                 device_odom_late=self.device_odom_late)
         self._diag_pub.put(encode(d))

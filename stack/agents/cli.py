@@ -11,7 +11,7 @@ from ..argtypes import fleet_name
 from ..comm.session import EndpointError, SessionConfig, SessionError, check_endpoint, open_session
 from ..drivers import UnknownDriver
 from ..policies import PolicyUnavailable
-from ..scenario import DRIVERS, POLICIES, ScenarioError, load_scenario, with_overrides
+from ..scenario import DRIVERS, POLICIES, ScenarioError, load_scenario, with_driver_settings, with_overrides
 from .agent import Agent, AgentConfig
 
 log = logging.getLogger("stack.agent")
@@ -36,6 +36,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--steps", type=int, help="stop after this many control steps")
     ap.add_argument("--seed", type=int, help="seed of every random source (default: the scenario's)")
     ap.add_argument("--allow-remote", action="store_true", help="allow a router endpoint off loopback")
+    ap.add_argument("--can-log", metavar="FILE", help="can driver: log every frame to FILE (.asc, .blf, .log, .csv; can.Logger)")
     ap.add_argument("--zenoh-config", metavar="FILE", help="zenoh json5 config layered under ours (deploy/: TLS, access control)")
     ap.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     return ap
@@ -52,6 +53,11 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
     check_endpoint(a.connect, a.allow_remote)
     if a.policy or a.driver:
         sc = with_overrides(sc, policy=a.policy, driver=a.driver)
+    if a.can_log:
+        driver = sc.robot(a.id).driver
+        if driver != "can":
+            raise ScenarioError(f"--can-log: robot {a.id}'s driver is {driver}, not can")
+        sc = with_driver_settings(sc, {a.id: {"can_log": a.can_log}})
     return AgentConfig(robot_id=a.id, scenario=sc, connect=a.connect, fleet=a.fleet, lockstep=a.lockstep,
                        steps=a.steps, seed=a.seed, zenoh_config=a.zenoh_config, allow_remote=a.allow_remote)
 

@@ -199,6 +199,7 @@ class Diag(_Msg):
     led_since: float | None = None  # sim time this agent took over as leader (failover)
     rejected_states: int = 0  # neighbours' states that claimed an impossible jump
     neighbour_waits_timed_out: int = 0  # lock-step steps that went on without an awaited neighbour state
+    device_odom_late: int = 0  # lock-step steps that went on without a new odometry sample from the device
 
 
 _ENCODER = msgspec.msgpack.Encoder()

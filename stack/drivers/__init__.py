@@ -14,6 +14,7 @@ BACKENDS: dict[str, str] = {
     "sim": "stack.drivers.sim:SimDriver",
     "can": "stack.drivers.can:CanDriver",
     "mavlink": "stack.drivers.mavlink:MavlinkDriver",
+    "jackal": "stack.drivers.jackal:JackalDriver",
 }
 
 

@@ -85,6 +85,7 @@ def parser() -> argparse.ArgumentParser:
                    help="SIGSTOP robot ID's agent at sim time T (a hung process: its driver watchdog stops the robot)")
     r.add_argument("--restart", type=_fault_at, action="append", default=[], metavar="ID@T",
                    help="start robot ID's agent again at sim time T (after a --kill or --freeze: it rejoins)")
+    r.add_argument("--can-log", action="store_true", help="log every CAN robot's bus to DIR/logs/can-<id>.asc (can.Logger)")
     r.add_argument("--device-fault", type=_fault_at, action="append", default=[], metavar="ID@T",
                    help="robot ID's simulated device fails at sim time T (CAN: heartbeats stop; MAVLink: HOLD; Jackal: odometry stops)")
     r.add_argument("--connect", metavar="EP", help="join this (site) router instead of starting one")
@@ -160,7 +161,7 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
     if out.exists() and not out.is_dir():
         raise ScenarioError(f"--out {out}: exists and is not a folder")
     return FleetConfig(scenario=sc, out=out, realtime=a.realtime, gui=a.gui, listen=a.listen, faults=faults,
-                       device_faults=a.device_fault,
+                       device_faults=a.device_fault, can_log=a.can_log,
                        progress=not a.no_progress, plots=not a.no_plots, connect=a.connect,
                        external_agents=a.external_agents, wait_agents_s=a.wait_agents, fleet=a.fleet,
                        zenoh_config=a.zenoh_config, allow_remote=a.allow_remote)

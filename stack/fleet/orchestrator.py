@@ -53,6 +53,8 @@ class FleetConfig:
     """(kind, robot id, sim time): ``kill`` (SIGKILL the agent), ``freeze`` (SIGSTOP it), ``restart``
     (start it again). The world asks for each at the first step at or after its time and waits
     until it is done, so lock-step runs with faults are repeatable."""
+    can_log: bool = False
+    """Every CAN robot's driver logs its bus to ``logs/can-<id>.asc`` (python-can ``can.Logger``)."""
     device_faults: list[tuple[int, float]] = field(default_factory=list)
     """(robot id, sim time): that robot's simulated device fails (the world does it; the driver must notice)."""
     fleet: str | None = None
@@ -73,6 +75,11 @@ class FleetConfig:
     """A zenoh json5 file (deploy/: TLS, access control) for our own session and the world's."""
     allow_remote: bool = False
     """Allow router endpoints off loopback (multi-host)."""
+
+
+RUN_OUTPUTS = ("report.json", "truth.npz", "world.json", "devices.json", "scenario.agents.yaml", "trajectories.png",
+               "distances.png", "errors.png")
+"""What a run writes into its folder (besides ``logs/`` and the resolved scenario)."""
 
 
 def sigterm_as_interrupt() -> None:
@@ -143,9 +150,10 @@ def _stop_all(procs: list[_Proc], timeout: float) -> None:
             pr.p.wait(5)
 
 
-def _agents_scenario(sc: Scenario, out: Path, world: _Proc, timeout: float = 30.0) -> Path:
+def _agents_scenario(sc: Scenario, out: Path, world: _Proc, timeout: float = 30.0, can_log: bool = False) -> Path:
     """Wait for the world's ``devices.json`` and write the scenario the agents read: the resolved one
-    with each hosted robot's driver settings pointing at its simulated device (pty, UDP port, keys)."""
+    with each hosted robot's driver settings pointing at its simulated device (pty, UDP port, keys),
+    and (``can_log``) each CAN robot's bus log in ``logs/``."""
     path = out / "devices.json"
     deadline = time.monotonic() + timeout
     while not path.exists():
@@ -155,7 +163,12 @@ def _agents_scenario(sc: Scenario, out: Path, world: _Proc, timeout: float = 30.
             raise TimeoutError(f"the world did not bring up its simulated devices within {timeout:.0f} s")
         time.sleep(0.05)
     devices = json.loads(path.read_text())
-    agents = with_driver_settings(sc, {int(rid): d["settings"] for rid, d in devices.items()})
+    settings = {int(rid): dict(d["settings"]) for rid, d in devices.items()}
+    if can_log:
+        for r in sc.robots:
+            if r.driver == "can":
+                settings[r.id]["can_log"] = str(out / "logs" / f"can-{r.id}.asc")
+    agents = with_driver_settings(sc, settings)
     target = out / "scenario.agents.yaml"
     target.write_text(agents.to_yaml())
     return target
@@ -261,6 +274,8 @@ def run_fleet(cfg: FleetConfig) -> tuple[int, dict]:
     sc = cfg.scenario
     out = cfg.out
     (out / "logs").mkdir(parents=True, exist_ok=True)
+    for name in RUN_OUTPUTS:  # a folder used before: nothing of that run may pass for this one's
+        (out / name).unlink(missing_ok=True)
     resolved = out / "scenario.resolved.yaml"
     resolved.write_text(sc.to_yaml())
     fleet = cfg.fleet or f"run{os.getpid()}"
@@ -314,7 +329,7 @@ def run_fleet(cfg: FleetConfig) -> tuple[int, dict]:
             if any(r.driver != "sim" for r in sc.robots) and not cfg.external_agents:
                 # robots on simulated hardware: their drivers go where the world put each device
                 try:
-                    agents_scenario = _agents_scenario(sc, out, procs["world"])
+                    agents_scenario = _agents_scenario(sc, out, procs["world"], can_log=cfg.can_log)
                 except TimeoutError as e:
                     crashed.append({"process": "world", "exit_code": procs["world"].poll(), "sim_time_s": 0.0,
                                     "log_tail": f"{e}: {procs['world'].tail(3)}"})

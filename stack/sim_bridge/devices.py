@@ -110,6 +110,11 @@ class HostedDevice(ABC):
     def report(self, t_sim_next: float, body: Body) -> None:
         """The body as the world moved it at ``t_sim_next``; send the telemetry due by then."""
 
+    def publish_scan(self, t_sim: float, angle_min: float, angle_increment: float, range_max: float,
+                     ranges) -> None:
+        """The world's lidar scan at ``t_sim``, for a device that carries the robot's lidar on its own wire
+        (a bridged ROS 2 robot publishes ``LaserScan``); the others have nothing to do."""
+
     @abstractmethod
     def fail(self) -> str:
         """Inject this device's typical failure (``--device-fault``); returns what happened, in words."""

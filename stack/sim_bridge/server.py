@@ -324,8 +324,11 @@ class WorldServer:
                     pubs[(rid, "fix")].put(encode(Fix(id=rid, step=self.k, stamp=stamp, x=fx, y=fy, std=robot.fix[1])))
                 lid = sc.robots[i].lidar
                 inc = lid.fov / (lid.beams - 1) if lid.beams > 1 else 0.0
-                pubs[(rid, "scan")].put(encode(Scan(id=rid, step=self.k, stamp=stamp, angle_min=-lid.fov / 2 if lid.beams > 1 else 0.0,
+                a_min = -lid.fov / 2 if lid.beams > 1 else 0.0
+                pubs[(rid, "scan")].put(encode(Scan(id=rid, step=self.k, stamp=stamp, angle_min=a_min,
                                                     angle_increment=inc, range_max=lid.range, ranges=scans[rid].tolist())))
+                if rid in self.devices:
+                    self.devices[rid].publish_scan(self.t, a_min, inc, lid.range, scans[rid])
             truth_pub.put(encode(Truth(step=self.k, t=self.t, ids=self.ids, x=w.x.tolist(), y=w.y.tolist(), yaw=w.yaw.tolist())))
 
             # wait for commands of step k

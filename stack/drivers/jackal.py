@@ -1,0 +1,290 @@
+"""``jackal``: a Clearpath Jackal J100 (ROS 2) behind zenoh-bridge-ros2dds, without ROS on our side.
+
+The robot's ROS 2 topics under its namespace are Zenoh keys without the leading slash
+(``/robot2/cmd_vel`` is ``robot2/cmd_vel``) carrying CDR bytes (``stack.drivers.ros2cdr``):
+
+- ``<ns>/cmd_vel`` (``geometry_msgs/Twist``): we publish linear.x = v, angular.z = w; the
+  last one is resent every ``keepalive_period``, well inside the controller's 0.5 s
+  ``cmd_vel`` timeout (after which the Jackal stops by itself);
+- ``<ns>/platform/odom/filtered`` (``nav_msgs/Odometry``, the EKF's odom -> base_link):
+  ``read()`` gives v = twist.linear.x, w = twist.angular.z, the header stamp and the pose
+  (x, y, yaw from the quaternion);
+- ``<ns>/sensors/lidar2d_0/scan`` (``sensor_msgs/LaserScan``): ``read_scan()``.
+
+Commands are clamped to the robot's limits (the base class) and to the Jackal's own
+controller limits (``v_max`` 2.0 m/s, ``w_max`` 4.0 rad/s), whichever is lower. Opening
+waits up to ``open_timeout`` for the first odometry (is the bridge up, the namespace right?).
+
+A fault (odometry older than ``odom_timeout`` on the driver's clock, after the first one)
+sends a zero Twist and sets ``fault`` to a one-line reason; the base class then sends no
+motion and the keepalive resends zero until the driver is closed and opened again.
+
+Malformed traffic (not CDR, not the expected type, non-finite values) is counted in
+``counters`` (``odom_not_cdr``, ``scan_bad_value``...) and told to ``on_malformed`` as
+``jackal/<counter>``; nothing raises.
+
+>>> drv = JackalDriver(2, DriverLimits(1.0, 2.0), JackalConfig(namespace="robot2"), session=s)  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import threading
+import time
+from dataclasses import dataclass, fields, replace
+from typing import Any, Callable
+
+import zenoh
+
+from .base import Driver, DriverError, DriverLimits, Odometry, Periodic
+from .ros2cdr import CdrError, LaserScanData, decode_laserscan, decode_odometry, encode_twist
+
+log = logging.getLogger(__name__)
+
+_KEY = re.compile(r"[^/*$?#\s]+(/[^/*$?#\s]+)*")  # concrete key-expression chunks: no wildcards, no empty chunk
+
+
+def _check_key(name: str, value: Any) -> None:
+    if not (isinstance(value, str) and _KEY.fullmatch(value)):
+        raise ValueError(f"jackal driver: {name} {value!r} is not a key-expression prefix "
+                         f"(chunks separated by '/', no leading or trailing '/', no '*', '$', '?', '#' or spaces)")
+
+
+@dataclass(frozen=True)
+class JackalConfig:
+    """Where the Jackal's topics are on Zenoh and how the driver watches them (defaults: a J100's)."""
+
+    namespace: str | None = None
+    """The robot's ROS 2 namespace as a Zenoh key prefix, without the leading slash (``robot2``,
+    ``j100_0421``); None: ``robot<id>``."""
+    cmd_topic: str = "cmd_vel"
+    """Twist commands, relative to the namespace."""
+    odom_topic: str = "platform/odom/filtered"
+    """The EKF-filtered odometry (odom -> base_link), relative to the namespace."""
+    scan_topic: str = "sensors/lidar2d_0/scan"
+    """The 2D lidar's scans, relative to the namespace."""
+    odom_timeout: float = 0.5
+    """[s] odometry older than this (after the first one) is a fault: 25 periods of the EKF's 50 Hz."""
+    keepalive_period: float = 0.1
+    """[s] the last Twist is resent this often (the controller stops 0.5 s after its last cmd_vel)."""
+    open_timeout: float = 2.0
+    """[s] how long opening waits for the first odometry; 0: do not wait."""
+    v_max: float = 2.0
+    """[m/s] the Jackal controller's speed limit (commands are clamped to it and to the robot's own)."""
+    w_max: float = 4.0
+    """[rad/s] the Jackal controller's turn-rate limit (commands are clamped to it and to the robot's own)."""
+
+    def __post_init__(self):
+        if self.namespace is not None:
+            _check_key("namespace", self.namespace)
+        for name in ("cmd_topic", "odom_topic", "scan_topic"):
+            _check_key(name, getattr(self, name))
+        for name in ("odom_timeout", "keepalive_period", "v_max", "w_max"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"jackal driver: {name} must be a positive number, not {value!r}")
+        if not (isinstance(self.open_timeout, (int, float)) and math.isfinite(self.open_timeout)
+                and self.open_timeout >= 0):
+            raise ValueError(f"jackal driver: open_timeout must be a number >= 0, not {self.open_timeout!r}")
+        if self.keepalive_period >= 0.5:
+            raise ValueError("jackal driver: keepalive_period must be under 0.5 s (the controller's cmd_vel timeout)")
+
+    def key(self, robot_id: int, topic: str) -> str:
+        """The Zenoh key of a topic of robot ``robot_id``."""
+        return f"{self.namespace or f'robot{robot_id}'}/{topic}"
+
+
+class JackalDriver(Driver):
+    """A ROS 2 Jackal's cmd_vel, filtered odometry and 2D scan over the agent's Zenoh session.
+
+    ``session``: the agent's own Zenoh session (the driver declares on it, never opens one).
+    ``clock`` times the odometry timeout and the keepalive (the agent's clock: wall time, or
+    sim time in lock-step); odometry is stamped with its ROS header stamp, so ``stamp`` is
+    not used. ``**params`` are JackalConfig fields (the scenario's driver settings) that
+    override ``config``. ``keys`` is the agent's common driver argument (not used);
+    ``on_malformed`` is told ``jackal/<counter>`` for each malformed payload and ``on_odom``
+    gets each new odometry sample.
+    """
+
+    name = "jackal"
+    config_class = JackalConfig
+
+    def __init__(self, robot_id: int, limits: DriverLimits, config: JackalConfig | None = None, *,
+                 session: zenoh.Session, keys: Any = None, clock: Callable[[], float] = time.monotonic,
+                 stamp: Callable[[], float] = time.time, on_odom: Callable[[Odometry], None] | None = None,
+                 on_malformed: Callable[[str], None] | None = None, **params):
+        super().__init__(robot_id, limits, clock)
+        config = config or JackalConfig()
+        unknown = set(params) - {f.name for f in fields(JackalConfig)}
+        if unknown:
+            raise ValueError(f"jackal driver: unknown settings {', '.join(sorted(unknown))}")
+        self.config = replace(config, **params) if params else config
+        if session is None:
+            raise ValueError("jackal driver: needs the agent's zenoh session")
+        self._session = session
+        self._on_odom = on_odom
+        self._on_malformed = on_malformed or (lambda key: None)
+        self.cmd_key = self.config.key(robot_id, self.config.cmd_topic)
+        self.odom_key = self.config.key(robot_id, self.config.odom_topic)
+        self.scan_key = self.config.key(robot_id, self.config.scan_topic)
+        self.counters: dict[str, int] = {}
+        self._state = threading.Condition()  # guards _latest, _scan, _odom_time, counters
+        self._cmd_lock = threading.Lock()  # a command, a keepalive and a trip reach the wire whole and in order
+        self._latest: Odometry | None = None
+        self._scan: LaserScanData | None = None
+        self._odom_time: float | None = None  # driver clock at the newest odometry
+        self._cmd = (0.0, 0.0)  # what the keepalive resends
+        self._keepalive = Periodic(self.config.keepalive_period, self._clock)
+        self._pub: Any = None
+        self._declared: list = []  # the publisher and subscribers on the agent's session
+        self._halt = threading.Event()
+        self._supervisor: threading.Thread | None = None
+
+    # --- lifecycle --------------------------------------------------------------------
+    def _open(self) -> None:
+        cfg = self.config
+        self.fault = None
+        with self._state:
+            self._latest = self._scan = self._odom_time = None
+        self._cmd = (0.0, 0.0)
+        self._halt.clear()
+        try:
+            self._declared += [self._session.declare_subscriber(self.odom_key, self._odom_cb),
+                               self._session.declare_subscriber(self.scan_key, self._scan_cb)]
+            self._pub = self._session.declare_publisher(self.cmd_key, encoding=zenoh.Encoding.APPLICATION_CDR,
+                                                        congestion_control=zenoh.CongestionControl.BLOCK)
+            self._declared.append(self._pub)
+        except zenoh.ZError as e:
+            self._teardown()
+            raise DriverError(f"jackal driver {self.robot_id}: cannot declare {self.cmd_key} / {self.odom_key}: {e}") from e
+        if cfg.open_timeout > 0:
+            deadline = time.monotonic() + cfg.open_timeout
+            with self._state:
+                while self._latest is None:
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        self._teardown()
+                        raise DriverError(f"jackal driver {self.robot_id}: no odometry on {self.odom_key} within "
+                                          f"{cfg.open_timeout:g} s (is zenoh-bridge-ros2dds up, namespace right?)")
+                    self._state.wait(left)
+        self._next_keepalive = self._clock() + cfg.keepalive_period
+        self._supervisor = threading.Thread(target=self._supervise, name=f"jackal-supervisor-{self.robot_id}",
+                                            daemon=True)
+        self._supervisor.start()
+
+    def _close(self) -> None:
+        self._halt.set()
+        if self._supervisor is not None and self._supervisor is not threading.current_thread():
+            self._supervisor.join(timeout=1.0)
+        self._supervisor = None
+        self._teardown()
+
+    def _teardown(self) -> None:
+        self._pub = None
+        while self._declared:
+            self._declared.pop().undeclare()
+
+    # --- commands ---------------------------------------------------------------------
+    def clamp(self, v: float, w: float) -> tuple[float, float]:
+        """The robot's limits (base class), then the Jackal controller's."""
+        v, w = super().clamp(v, w)
+        cfg = self.config
+        return max(-cfg.v_max, min(cfg.v_max, v)), max(-cfg.w_max, min(cfg.w_max, w))
+
+    def _send(self, v: float, w: float) -> None:
+        with self._cmd_lock:
+            self._cmd = (0.0, 0.0) if self.fault is not None else (v, w)
+            self._put_cmd()
+
+    def _put_cmd(self) -> None:
+        """Put the current command on the wire (caller holds _cmd_lock)."""
+        self._keepalive.done()
+        if self._pub is None:
+            raise DriverError(f"jackal driver {self.robot_id}: {self.cmd_key} is not declared")
+        try:
+            self._pub.put(encode_twist(*self._cmd))
+        except zenoh.ZError as e:
+            raise DriverError(f"jackal driver {self.robot_id}: put on {self.cmd_key} failed: {e}") from e
+        self._count("tx")
+
+    # --- receiving (zenoh callback threads) ---------------------------------------------
+    def _odom_cb(self, sample: zenoh.Sample) -> None:
+        odo = self._decode(sample, "odom", decode_odometry)
+        if odo is None:
+            return
+        with self._state:
+            self._latest, self._odom_time = odo, self._clock()
+            self._count("odom")
+            self._state.notify_all()
+        if self._on_odom is not None:
+            self._on_odom(odo)
+
+    def _scan_cb(self, sample: zenoh.Sample) -> None:
+        scan = self._decode(sample, "scan", decode_laserscan)
+        if scan is not None:
+            with self._state:
+                self._scan = scan
+                self._count("scan")
+
+    def _decode(self, sample: zenoh.Sample, stream: str, decode: Callable[[bytes], Any]) -> Any:
+        try:
+            return decode(sample.payload.to_bytes())
+        except CdrError as e:
+            self._malformed(f"{stream}_{e.kind}")
+            log.debug("jackal driver %s: %s on %s: %s", self.robot_id, e.kind, sample.key_expr, e)
+            return None
+
+    def _read(self) -> Odometry | None:
+        with self._state:
+            return self._latest
+
+    def read_scan(self) -> LaserScanData | None:
+        """The newest scan, or None before the first."""
+        with self._state:
+            return self._scan
+
+    # --- supervision ------------------------------------------------------------------
+    def _supervise(self) -> None:
+        """Odometry timeout on the driver's clock; the keepalive by it or the wall clock (``Periodic``)."""
+        cfg = self.config
+        period = min(0.02, cfg.odom_timeout / 5, cfg.keepalive_period / 2)
+        while not self._halt.wait(period):
+            now = self._clock()
+            with self._state:
+                age = None if self._odom_time is None else now - self._odom_time
+            if age is not None and age > cfg.odom_timeout:
+                self._trip(f"no odometry on {self.odom_key} for {age:.2f} s")
+            if self._keepalive.due():
+                try:
+                    with self._cmd_lock:
+                        self._put_cmd()
+                except DriverError as e:
+                    self._count("tx_error")
+                    log.error("%s", e)
+
+    def _trip(self, reason: str) -> None:
+        """First fault wins: zero Twist, then report."""
+        with self._cmd_lock:
+            if self.fault is not None:
+                return
+            self.fault = reason
+            self._cmd = (0.0, 0.0)
+            log.error("jackal driver %s: fault: %s: zero velocity sent", self.robot_id, reason)
+            try:
+                self._put_cmd()
+            except DriverError as e:
+                log.error("%s", e)
+
+    # --- helpers ----------------------------------------------------------------------
+    def _count(self, key: str) -> None:
+        with self._state:
+            self.counters[key] = self.counters.get(key, 0) + 1
+
+    def _malformed(self, kind: str) -> None:
+        self._count(kind)
+        self._on_malformed(f"jackal/{kind}")
+
+
+__all__ = ["JackalConfig", "JackalDriver", "LaserScanData"]
