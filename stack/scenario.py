@@ -127,6 +127,7 @@ class RobotConfig:
     base: BaseConfig = field(default_factory=BaseConfig)
     pid: PidConfig = field(default_factory=PidConfig)
     aina: AinaConfig = field(default_factory=AinaConfig)
+    qlearn: dict[str, Any] = field(default_factory=dict)  # ``--policy qlearn`` settings (QlearnPolicyConfig fields)
     goal: tuple[float, float] | None = None
     driver_params: dict[str, dict[str, Any]] = field(default_factory=dict)
 
@@ -339,7 +340,7 @@ def _kind(value: Any) -> str:
     return type(value).__name__
 
 
-_ROBOT_KEYS = {"radius", "v_max", "w_max", "lidar", "odom_noise", "imu_noise", "fix", "comm_range", "cmd_timeout", "base", "pid", "aina", "policy", "driver"} | set(DRIVERS)
+_ROBOT_KEYS = {"radius", "v_max", "w_max", "lidar", "odom_noise", "imu_noise", "fix", "comm_range", "cmd_timeout", "base", "pid", "aina", "qlearn", "policy", "driver"} | set(DRIVERS)
 
 
 def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict[str, Any]:
@@ -400,6 +401,8 @@ def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict
         if "v_cruise" in vals and vals["v_cruise"] > 1.0:
             raise rd.fail(f"{path}.pid.v_cruise", f"must be <= 1 (a fraction of v_max), got {vals['v_cruise']:g}")
         out["pid"] = replace(prev, **vals)
+    if "qlearn" in d:
+        out["qlearn"] = dict(out.get("qlearn", {})) | _qlearn_settings(rd, d["qlearn"], f"{path}.qlearn")
     if "aina" in d:
         prev = out.get("aina", AinaConfig())
         m = rd.mapping(d["aina"], f"{path}.aina", set(AinaConfig.__dataclass_fields__))
@@ -424,6 +427,27 @@ def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict
         if name in d:
             params[name] = _driver_settings(rd, name, d[name], f"{path}.{name}")
     out["driver_params"] = params
+    return out
+
+
+def _qlearn_settings(rd: _Reader, value: Any, path: str) -> dict[str, Any]:
+    """``qlearn:`` (Fan 2021 in the fleet): fields of ``QlearnPolicyConfig``, each of its default's kind;
+    lengths, gains and counts positive (``evidence_min`` is a log-odds floor: any number below 0)."""
+    from .policies.qlearn import QlearnPolicyConfig  # lazy: numpy-only, but not needed by other scenarios
+
+    defaults = {f.name: f.default for f in fields(QlearnPolicyConfig)}
+    m = rd.mapping(value or {}, path, set(defaults))
+    out: dict[str, Any] = {}
+    for k, v in m.items():
+        p, default = f"{path}.{k}", defaults[k]
+        if isinstance(default, bool):
+            out[k] = rd.boolean(v, p)
+        elif isinstance(default, int):
+            out[k] = _max(rd, rd.integer(v, p, 1), 100_000, p)
+        elif k == "evidence_min":
+            out[k] = rd.number(v, p, hi=0.0)
+        else:
+            out[k] = rd.number(v, p, 0.0, lo_open=True)
     return out
 
 

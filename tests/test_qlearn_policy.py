@@ -14,7 +14,7 @@ from stack.planning.tracking import tracking_cost
 from stack.policies.base import Observation
 from stack.policies.qlearn import (QlearnPolicy, QlearnPolicyConfig, Polyline, dilate, gpf_choice, make_qlearn,
                                    reachable, string_pull)
-from stack.scenario import load_scenario
+from stack.scenario import ScenarioError, load_scenario, parse_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 BEAMS, FOV, RANGE = 180, math.pi, 5.0
@@ -189,6 +189,18 @@ def test_make_qlearn_from_the_scenario():
     with pytest.raises(ValueError, match="unknown qlearn keys"):
         QlearnPolicyConfig.from_dict({"cel": 0.5})
     assert QlearnPolicyConfig.from_dict({"cell": 0.25}).cell == 0.25
+
+
+def test_scenario_qlearn_block_sets_the_grid_and_rejects_bad_fields():
+    raw = load_scenario(ROOT / "scenarios" / "four-robot-obstacles.yaml").raw
+    sc = parse_scenario(raw | {"robot": dict(raw["robot"]) | {"qlearn": {"cell": 0.25, "n_headings": 8}}})
+    pol = make_qlearn(sc.robot(0))
+    assert pol.cfg.cell == 0.25 and pol.cfg.n_headings == 8
+    for bad, words in (({"cell": -0.5}, "robot.qlearn.cell: must be > 0"), ({"cel": 0.5}, "robot.qlearn.cel: unknown field"),
+                       ({"max_rounds": 2.5}, "robot.qlearn.max_rounds: expected an integer"),
+                       ({"evidence_min": 1.0}, "robot.qlearn.evidence_min: must be <= 0")):
+        with pytest.raises(ScenarioError, match=words):
+            parse_scenario(raw | {"robot": dict(raw["robot"]) | {"qlearn": bad}})
 
 
 # --- (b) closed loops in the tiny world ------------------------------------------------------------
