@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -41,6 +42,16 @@ def scenario_dict(**over) -> dict:
     for k, v in over.items():
         d[k] = v
     return d
+
+
+def wait_for(pred, timeout: float = 2.0, step: float = 0.005):
+    """Poll until pred() is truthy; returns its value (or the last falsy one)."""
+    end = time.monotonic() + timeout
+    while True:
+        value = pred()
+        if value or time.monotonic() > end:
+            return value
+        time.sleep(step)
 
 
 def write_scenario(path: Path, data: dict) -> Path:

@@ -18,6 +18,7 @@ import can
 import cantools
 import pytest
 
+from conftest import wait_for
 from stack.drivers import DriverError, DriverLimits
 from stack.drivers import odrive
 from stack.drivers.can import CanConfig, CanDriver
@@ -28,16 +29,6 @@ LIMITS = DriverLimits(v_max=1.0, w_max=2.0, cmd_timeout=5.0)
 CFG = CanConfig(interface="virtual", wheel_radius=0.1, track_width=0.4, gear_ratio=2.0, open_timeout=1.0)
 RAMP = 40.0  # [rev/s^2] sim ramp: fast, so tests need not wait long
 _channels = itertools.count()
-
-
-def wait_for(pred, timeout: float, step: float = 0.005):
-    """Poll until pred() is truthy; returns its value (or the last falsy one)."""
-    end = time.monotonic() + timeout
-    while True:
-        value = pred()
-        if value or time.monotonic() > end:
-            return value
-        time.sleep(step)
 
 
 def dbc_decode(msg: can.Message) -> tuple[str, dict]:

@@ -16,6 +16,7 @@ import time
 import numpy as np
 import pytest
 
+from conftest import wait_for
 from stack.comm.session import SessionConfig, free_tcp_endpoint, open_session
 from stack.drivers.base import DriverError, DriverLimits
 from stack.drivers.jackal import JackalConfig, JackalDriver
@@ -29,13 +30,6 @@ from stack.sim_bridge.jackal_sim import JackalDevice
 T = TYPESTORE.types
 WIDE = DriverLimits(v_max=10.0, w_max=10.0, cmd_timeout=5.0)  # wider than a Jackal: its own limits must bite
 _ns = itertools.count()
-
-
-def wait_for(pred, timeout: float = 2.0):
-    end = time.monotonic() + timeout
-    while not (value := pred()) and time.monotonic() < end:
-        time.sleep(0.005)
-    return value
 
 
 def header(stamp: float, frame: str):
@@ -346,7 +340,7 @@ def test_scan_round_trip_through_read_scan(rig):
     assert scan.angle_min == pytest.approx(-math.pi / 2, abs=1e-6)
     assert scan.angle_increment == pytest.approx(inc, abs=1e-7) and scan.range_max == 5.0
     assert scan.ranges == pytest.approx(tuple(ranges), abs=1e-6)
-    assert rig.driver.counters["scan"] == 1 and rig.device.driver_params() == {"namespace": rig.device.namespace}
+    assert rig.driver.counters["scan"] == 1 and rig.device.driver_params()["namespace"] == rig.device.namespace
 
 
 def test_default_namespace_is_unique_per_fleet(sessions, tmp_path):
@@ -355,7 +349,7 @@ def test_default_namespace_is_unique_per_fleet(sessions, tmp_path):
     robot = RobotConfig(id=3, role="follower", pose=(0.0, 0.0, 0.0))
     a = JackalDevice(robot, run_dir=tmp_path, session=sessions[1], keys=Keys("fleetA"))
     b = JackalDevice(robot, run_dir=tmp_path, session=sessions[1], keys=Keys("fleetB"))
-    assert a.driver_params() == {"namespace": "jackal/fleetA/robot3"}
+    assert a.driver_params()["namespace"] == "jackal/fleetA/robot3"
     assert b.cmd_key == "jackal/fleetB/robot3/cmd_vel" and a.cmd_key != b.cmd_key
     assert b.odom_key == "jackal/fleetB/robot3/platform/odom/filtered"
     assert b.scan_key == "jackal/fleetB/robot3/sensors/lidar2d_0/scan"

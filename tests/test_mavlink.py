@@ -16,6 +16,7 @@ import time
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
+from conftest import wait_for
 from stack.drivers import DriverError, DriverLimits
 from stack.drivers.mavlink import (MODE_GUIDED, MODE_HOLD, TYPE_MASK_VEL_YAW_RATE, MavlinkConfig, MavlinkDriver,
                                    forward_speed, mode_name, ned_to_world, result_name, world_to_ned)
@@ -29,15 +30,6 @@ def free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def wait_for(pred, timeout: float, step: float = 0.005):
-    end = time.monotonic() + timeout
-    while True:
-        value = pred()
-        if value or time.monotonic() > end:
-            return value
-        time.sleep(step)
 
 
 def same_angle(a: float, b: float, tol: float = 1e-6) -> bool:

@@ -20,7 +20,7 @@ import math
 import threading
 import time
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from typing import Callable
 
 log = logging.getLogger(__name__)
@@ -94,6 +94,16 @@ class Driver(ABC):
         self._stop = threading.Event()
         self.watchdog_trips = 0
         self.fault: str | None = None
+
+    def _configure(self, config, params: dict):
+        """``config`` (or ``config_class``'s defaults) with the scenario's settings ``params`` over it;
+        an unknown setting is a one-line error naming it."""
+        cls = self.config_class
+        config = config or cls()
+        unknown = set(params) - {f.name for f in fields(cls)}
+        if unknown:
+            raise ValueError(f"{self.name} driver: unknown settings {', '.join(sorted(unknown))}")
+        return replace(config, **params) if params else config
 
     # --- lifecycle -------------------------------------------------------------------
     def open(self) -> "Driver":

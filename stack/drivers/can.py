@@ -22,7 +22,7 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping
 
 import can
@@ -161,11 +161,7 @@ class CanDriver(Driver):
                  on_malformed: Callable[[str], None] | None = None, session: Any = None, keys: Any = None,
                  **params):
         super().__init__(robot_id, limits, clock)
-        config = config or CanConfig()
-        unknown = set(params) - {f.name for f in fields(CanConfig)}
-        if unknown:
-            raise ValueError(f"can driver: unknown settings {', '.join(sorted(unknown))}")
-        self.config = replace(config, **params) if params else config
+        self.config = self._configure(config, params)
         self._given_bus = bus
         self._stamp = stamp
         self._on_odom = on_odom

@@ -33,7 +33,7 @@ import math
 import re
 import threading
 import time
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import zenoh
@@ -116,11 +116,7 @@ class JackalDriver(Driver):
                  stamp: Callable[[], float] = time.time, on_odom: Callable[[Odometry], None] | None = None,
                  on_malformed: Callable[[str], None] | None = None, **params):
         super().__init__(robot_id, limits, clock)
-        config = config or JackalConfig()
-        unknown = set(params) - {f.name for f in fields(JackalConfig)}
-        if unknown:
-            raise ValueError(f"jackal driver: unknown settings {', '.join(sorted(unknown))}")
-        self.config = replace(config, **params) if params else config
+        self.config = self._configure(config, params)
         if session is None:
             raise ValueError("jackal driver: needs the agent's zenoh session")
         self._session = session

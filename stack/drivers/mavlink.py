@@ -37,7 +37,7 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
 from typing import Any, Callable
 
 from pymavlink import mavutil
@@ -204,11 +204,7 @@ class MavlinkDriver(Driver):
                  on_odom: Callable[[Odometry], None] | None = None, on_malformed: Callable[[str], None] | None = None,
                  session: Any = None, keys: Any = None, **params):
         super().__init__(robot_id, limits, clock)
-        config = config or MavlinkConfig()
-        unknown = set(params) - {f.name for f in fields(MavlinkConfig)}
-        if unknown:
-            raise ValueError(f"mavlink driver: unknown settings {', '.join(sorted(unknown))}")
-        self.config = replace(config, **params) if params else config
+        self.config = self._configure(config, params)
         self._stamp = stamp
         self._on_odom = on_odom
         self._on_malformed = on_malformed or (lambda key: None)

@@ -41,6 +41,11 @@ from pathlib import Path
 from typing import Any
 
 
+SIM_OPEN_TIMEOUT_S = 10.0
+"""[s] at least this long for a driver to open its simulated device: the whole fleet (router, world with
+every device, all agents) starts at once on one machine, so handshakes take longer than on a robot."""
+
+
 @dataclass(frozen=True)
 class Body:
     """A robot body as the world moved it: pose in the world frame and body speeds."""
@@ -70,6 +75,14 @@ class HostedDevice(ABC):
         self.seed = seed
         self._wall0 = time.monotonic()
         self._offset: float | None = None  # device time = offset + sim time, once in lock-step
+
+    def driver_config(self, cls, **over):
+        """The robot's ``<driver>:`` settings as its driver reads them (``cls``: that driver's config
+        dataclass), so device and driver agree on the robot (wheels, node ids, system ids, topics)."""
+        try:
+            return cls(**(dict(self.robot.driver_params.get(self.kind, {})) | over))
+        except (TypeError, ValueError) as e:
+            raise DeviceError(f"robot {self.robot_id}: {e}") from None
 
     # --- time ----------------------------------------------------------------------------
     def wall_time(self) -> float:

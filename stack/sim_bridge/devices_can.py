@@ -11,7 +11,7 @@ go out after the world has moved the body, so they describe it at the end of the
 from __future__ import annotations
 
 from ..drivers.can import CanConfig
-from .devices import Body, DeviceError, HostedDevice
+from .devices import SIM_OPEN_TIMEOUT_S, Body, DeviceError, HostedDevice
 from .odrive_sim import ODrivePair, SlcanPtyBus
 
 
@@ -20,10 +20,7 @@ class OdriveDevice(HostedDevice):
 
     def __init__(self, robot, **kw):
         super().__init__(robot, **kw)
-        try:
-            self.config = CanConfig(**robot.driver_params.get("can", {}))
-        except (TypeError, ValueError) as e:
-            raise DeviceError(f"robot {robot.id}: {e}") from None
+        self.config = self.driver_config(CanConfig)
         self.adapter: SlcanPtyBus | None = None
         self.pair: ODrivePair | None = None
         self._due: list = []
@@ -37,7 +34,9 @@ class OdriveDevice(HostedDevice):
         self.pair = ODrivePair(self.adapter, (cfg.node_left, cfg.node_right), clock=self.wall_time).run_realtime()
 
     def driver_params(self) -> dict:
-        return {"interface": "slcan", "channel": self.adapter.slave_path, "bus_options": {"sleep_after_open": 0}}
+        # open_timeout: the whole fleet starts at once on this machine; a real ODrive answers in 100 ms
+        return {"interface": "slcan", "channel": self.adapter.slave_path, "bus_options": {"sleep_after_open": 0},
+                "open_timeout": max(self.config.open_timeout, SIM_OPEN_TIMEOUT_S)}
 
     def take_commands(self, t_sim: float) -> None:
         if self.in_lockstep:

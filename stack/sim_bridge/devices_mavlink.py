@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..drivers.mavlink import MavlinkConfig
-from .devices import Body, DeviceError, HostedDevice
+from .devices import SIM_OPEN_TIMEOUT_S, Body, DeviceError, HostedDevice
 from .rover_sim import SimRover
 
 
@@ -22,10 +22,7 @@ class RoverDevice(HostedDevice):
 
     def __init__(self, robot, **kw):
         super().__init__(robot, **kw)
-        try:
-            self.config = MavlinkConfig(**robot.driver_params.get("mavlink", {}))
-        except (TypeError, ValueError) as e:
-            raise DeviceError(f"robot {robot.id}: {e}") from None
+        self.config = self.driver_config(MavlinkConfig)
         self.rng = np.random.default_rng([self.seed, robot.id, 7])
         self.rover: SimRover | None = None
 
@@ -41,7 +38,8 @@ class RoverDevice(HostedDevice):
         self.rover.run_realtime()
 
     def driver_params(self) -> dict:
-        return {"connection": f"udpout:127.0.0.1:{self.rover.port}"}
+        return {"connection": f"udpout:127.0.0.1:{self.rover.port}",
+                "connect_timeout": max(self.config.connect_timeout, SIM_OPEN_TIMEOUT_S)}
 
     def take_commands(self, t_sim: float) -> None:
         if self.in_lockstep:

@@ -49,7 +49,7 @@ import zenoh
 
 from ..drivers.jackal import JackalConfig
 from ..drivers.ros2cdr import CdrError, decode_twist, encode_laserscan, encode_odometry
-from .devices import Body, DeviceError, HostedDevice
+from .devices import SIM_OPEN_TIMEOUT_S, Body, DeviceError, HostedDevice
 
 log = logging.getLogger(__name__)
 
@@ -82,10 +82,8 @@ class JackalDevice(HostedDevice):
             raise DeviceError(f"robot {robot.id}: the jackal device needs the world's zenoh session")
         if namespace is None:
             namespace = f"jackal/{self.keys.fleet}/robot{robot.id}" if self.keys is not None else f"robot{robot.id}"
-        try:  # the scenario's jackal settings (topics) with our namespace: the driver gets the same
-            cfg = replace(JackalConfig(**robot.driver_params.get("jackal", {})), namespace=namespace)
-        except (TypeError, ValueError) as e:
-            raise DeviceError(f"robot {robot.id}: {e}") from None
+        cfg = self.driver_config(JackalConfig, namespace=namespace)  # the topics as the driver has them, our namespace
+        self._open_timeout = cfg.open_timeout
         self.namespace = namespace
         self.cmd_key = cfg.key(robot.id, cfg.cmd_topic)
         self.odom_key = cfg.key(robot.id, cfg.odom_topic)
@@ -119,7 +117,7 @@ class JackalDevice(HostedDevice):
         self._thread.start()
 
     def driver_params(self) -> dict[str, Any]:
-        return {"namespace": self.namespace}
+        return {"namespace": self.namespace, "open_timeout": max(self._open_timeout, SIM_OPEN_TIMEOUT_S)}
 
     def _stop_realtime(self) -> None:
         self._halt.set()
