@@ -54,6 +54,22 @@ def wait_for(pred, timeout: float = 2.0, step: float = 0.005):
         time.sleep(step)
 
 
+def wait_port(endpoint: str, timeout: float = 20.0) -> None:
+    """Until something listens on ``tcp/HOST:PORT`` (a router process that is still starting)."""
+    import socket
+
+    host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
+    end = time.monotonic() + timeout
+    while True:
+        try:
+            with socket.create_connection((host.strip("[]"), int(port)), timeout=0.2):
+                return
+        except OSError:
+            if time.monotonic() > end:
+                raise TimeoutError(f"nothing listens on {endpoint} after {timeout:g} s") from None
+            time.sleep(0.05)
+
+
 def write_scenario(path: Path, data: dict) -> Path:
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path

@@ -12,7 +12,7 @@ import time
 
 import pytest
 
-from conftest import ROOT, scenario_dict, write_scenario
+from conftest import ROOT, scenario_dict, wait_port, write_scenario
 from stack.comm import Keys, decode
 from stack.comm.messages import Clock, CmdVel
 from stack.comm.session import SessionConfig, free_tcp_endpoint, open_session
@@ -31,7 +31,7 @@ def test_agent_end_commands_zero(tmp_path, how):
     fleet = "safety"
     log = open(tmp_path / "log.txt", "wb")
     procs = [_spawn("stack.comm.router", "--listen", ep, log=log)]
-    time.sleep(0.5)
+    wait_port(ep)
     cmds: list[CmdVel] = []
     clock = {"t": 0.0}
     lock = threading.Lock()
