@@ -8,7 +8,7 @@ import signal
 import sys
 
 from ..argtypes import fleet_name
-from ..comm.session import EndpointError, SessionConfig, SessionError, check_endpoint, open_session
+from ..comm.session import ConfigFileError, EndpointError, SessionConfig, SessionError, check_endpoint, open_session
 from ..drivers import UnknownDriver
 from ..policies import PolicyUnavailable
 from ..scenario import DRIVERS, POLICIES, ScenarioError, load_scenario, with_driver_settings, with_overrides
@@ -94,7 +94,7 @@ def cli(argv: list[str] | None = None) -> int:
         return 2
     try:
         return main(cfg)
-    except (PolicyUnavailable, UnknownDriver) as e:
+    except (PolicyUnavailable, UnknownDriver, ConfigFileError) as e:
         print(f"stack-agent: {e}", file=sys.stderr)
         return 2
     except (TimeoutError, SessionError) as e:

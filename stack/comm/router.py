@@ -11,7 +11,7 @@ import signal
 import sys
 import threading
 
-from .session import EndpointError, SessionConfig, SessionError, open_session
+from .session import ConfigFileError, EndpointError, SessionConfig, SessionError, open_session
 
 
 def main(listen: list[str], config_file: str | None = None, allow_remote: bool = False,
@@ -36,7 +36,7 @@ def cli(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     try:
         return main(a.listen, a.config, a.allow_remote, a.connect)
-    except EndpointError as e:
+    except (EndpointError, ConfigFileError) as e:
         print(f"stack-router: {e}", file=sys.stderr)
         return 2
     except SessionError as e:

@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import socket
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import zenoh
 
@@ -30,6 +32,20 @@ class SessionError(RuntimeError):
     """A session that could not open: no router at the endpoint, a port in use, a bad config file."""
 
 
+class ConfigFileError(SessionError):
+    """A ``config_file`` that is missing or is not a zenoh json5 config (a :class:`SessionError`, one line)."""
+
+
+def one_line(err: object) -> str:
+    """A zenoh error as one line: json5 parse reports span several lines and end in the Rust source location."""
+    text = re.sub(r"\s+at /\S+\.rs:\d+\.?", "", str(err))
+    where = re.search(r"-->\s*(\d+):(\d+)", text)
+    what = re.search(r"^\s*=\s*(.+)$", text, re.M)
+    if where and what:
+        return f"line {where.group(1)}, column {where.group(2)}: {what.group(1).strip()}"
+    return " ".join(part.strip() for part in text.splitlines() if part.strip().strip("|^-").strip())
+
+
 @dataclass
 class SessionConfig:
     """One Zenoh session.
@@ -37,7 +53,11 @@ class SessionConfig:
     mode: ``client`` (agents, world, tools: through a router) or ``router`` (the fleet's own).
     connect: endpoints to reach, e.g. ``tcp/127.0.0.1:7447``.
     listen: endpoints to accept on (routers).
-    config_file: a zenoh json5 file (e.g. from ``deploy/``) loaded first; our settings layer on top.
+    config_file: a zenoh json5 file (e.g. from ``deploy/``: TLS, access control) loaded first; our settings
+        layer on top: mode, multicast scouting off, and ``connect``/``listen`` replace the file's endpoints
+        (where ours are empty, a plain list in the file stays, checked by the same loopback rule). A file
+        that is missing or not a zenoh config, or that names a certificate or key that does not exist,
+        is a :class:`ConfigFileError` (one line).
     overrides: further ``key/path -> json5 value`` insertions, applied last.
     allow_remote: endpoints off loopback are refused unless this is set (multi-host fleets).
     """
@@ -72,20 +92,50 @@ def zenoh_config(cfg: SessionConfig) -> zenoh.Config:
     try:
         conf = zenoh.Config.from_file(cfg.config_file) if cfg.config_file else zenoh.Config()
     except (zenoh.ZError, OSError) as e:
-        raise SessionError(f"{cfg.config_file}: not a usable zenoh config: {e}") from None
+        raise ConfigFileError(f"{cfg.config_file}: not a usable zenoh config: {one_line(e)}") from None
+    if cfg.config_file:
+        _check_tls_files(conf, cfg.config_file)
     for ep in cfg.connect + cfg.listen:
         check_endpoint(ep, cfg.allow_remote)
     conf.insert_json5("mode", json.dumps(cfg.mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
     if cfg.mode != "router":
         conf.insert_json5("scouting/gossip/enabled", "false")
-    conf.insert_json5("connect/endpoints", json.dumps(cfg.connect))
-    conf.insert_json5("listen/endpoints", json.dumps(cfg.listen))
+    for what, ours in (("connect", cfg.connect), ("listen", cfg.listen)):
+        # ours replace the file's; with none of ours, the file's stay (checked by the same rule)
+        kept = _file_endpoints(conf, what) if cfg.config_file and not ours else []
+        for ep in kept:
+            check_endpoint(ep, cfg.allow_remote)
+        conf.insert_json5(f"{what}/endpoints", json.dumps(ours or kept))
     for key, value in cfg.overrides.items():
         conf.insert_json5(key, value)
     if "multicast/enabled" in str(cfg.overrides) and "true" in str(cfg.overrides):
         log.warning("zenoh: multicast scouting switched on by an override")
     return conf
+
+
+def _file_endpoints(conf: zenoh.Config, what: str) -> list[str]:
+    """The endpoints a config file lists (a plain list; zenoh's per-mode default ``{router: [...], peer: [...]}``
+    is not a choice of the file's author and is dropped, as before)."""
+    try:
+        value = json.loads(conf.get_json(f"{what}/endpoints"))
+    except (zenoh.ZError, ValueError):
+        return []
+    return [str(e) for e in value] if isinstance(value, list) else []
+
+
+TLS_FILES = ("root_ca_certificate", "listen_private_key", "listen_certificate", "connect_private_key", "connect_certificate")
+
+
+def _check_tls_files(conf: zenoh.Config, source: str) -> None:
+    """Name a missing certificate or key here: zenoh itself only says it cannot connect or listen."""
+    for name in TLS_FILES:
+        try:
+            value = json.loads(conf.get_json(f"transport/link/tls/{name}"))
+        except (zenoh.ZError, ValueError):
+            continue
+        if isinstance(value, str) and not Path(value).is_file():
+            raise ConfigFileError(f"{source}: transport.link.tls.{name}: no such file {value}")
 
 
 def open_session(cfg: SessionConfig) -> zenoh.Session:
@@ -96,7 +146,7 @@ def open_session(cfg: SessionConfig) -> zenoh.Session:
     except zenoh.ZError as e:
         where = ", ".join(cfg.listen if cfg.mode == "router" else cfg.connect) or "(no endpoint)"
         what = "cannot listen on" if cfg.mode == "router" else "cannot reach a Zenoh router at"
-        reason = str(e).split(" at /")[0].strip()
+        reason = one_line(e)
         raise SessionError(f"{what} {where}: {reason}") from None
 
 

@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 from ..argtypes import fleet_name, positive_int
-from ..comm.session import EndpointError, SessionError, check_endpoint, port_free
+from ..comm.session import ConfigFileError, EndpointError, SessionConfig, SessionError, check_endpoint, port_free, zenoh_config
 from ..policies import available as available_policies
 from ..scenario import DRIVERS, FAULT_KINDS, POLICIES, ScenarioError, load_scenario, parse_fault_at, with_overrides
 from .orchestrator import EXIT_BAD_INPUT, FleetConfig, run_fleet, sigterm_as_interrupt
@@ -155,6 +155,11 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
         raise ScenarioError(f"--wait-agents: must be > 0, got {a.wait_agents:g}")
     if a.zenoh_config is not None and not Path(a.zenoh_config).is_file():
         raise ScenarioError(f"--zenoh-config {a.zenoh_config}: no such file")
+    if a.zenoh_config is not None:
+        try:  # read it here, so a broken file is bad input (exit 2), not a crash of every process
+            zenoh_config(SessionConfig(config_file=a.zenoh_config, allow_remote=True))
+        except ConfigFileError as e:
+            raise ScenarioError(f"--zenoh-config {e}") from None
     if a.gui and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         raise ScenarioError("--gui: no display (DISPLAY is not set); run without --gui, or under a desktop or Xvfb")
     out = a.out or Path("runs") / sc.name

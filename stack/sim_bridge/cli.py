@@ -8,7 +8,7 @@ import signal
 import sys
 from pathlib import Path
 
-from ..comm.session import EndpointError, SessionConfig, SessionError, check_endpoint, open_session
+from ..comm.session import ConfigFileError, EndpointError, SessionConfig, SessionError, check_endpoint, open_session
 from ..scenario import FAULT_KINDS, ScenarioError, load_scenario, parse_fault_at
 from .devices import DeviceError
 from .server import WorldConfig, WorldServer
@@ -69,7 +69,14 @@ def cli(argv: list[str] | None = None) -> int:
                       wait_agents_s=a.wait_agents, lockstep_timeout_s=a.lockstep_timeout, duration=a.duration,
                       stop_early=not a.no_stop_early, zenoh_config=a.zenoh_config, allow_remote=a.allow_remote,
                       device_faults=a.device_fault, faults=[(kind, rid, t) for kind in FAULT_KINDS for rid, t in getattr(a, kind)])
-    return main(cfg)
+    try:
+        return main(cfg)
+    except ConfigFileError as e:
+        print(f"stack-world: {e}", file=sys.stderr)
+        return 2
+    except SessionError as e:
+        print(f"stack-world: {e}", file=sys.stderr)
+        return 1
 
 
 def _fault_at(text: str) -> tuple[int, float]:
