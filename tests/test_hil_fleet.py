@@ -107,3 +107,28 @@ def test_mixed_fleet_one_driver_of_each_kind(tmp_path, sim_run):
     assert rep["drivers"] == {"0": "mavlink", "1": "can", "2": "jackal", "3": "sim"}
     _same_run(rep, sim_run)
     assert "/dev/pts/999" not in (out / "scenario.agents.yaml").read_text()
+
+
+def test_agent_whose_device_does_not_answer_exits_with_one_line(tmp_path):
+    import subprocess
+    import sys
+
+    from conftest import wait_port
+    from stack.comm.session import free_tcp_endpoint
+
+    ep = free_tcp_endpoint()
+    router = subprocess.Popen([sys.executable, "-m", "stack.comm.router", "--listen", ep], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+    try:
+        wait_port(ep)
+        d = scenario_dict()
+        d["robots"][0] |= {"driver": "mavlink", "mavlink": {"connection": "udpout:127.0.0.1:9", "connect_timeout": 0.5}}
+        path = write_scenario(tmp_path / "s.yaml", d)
+        p = run_cli(["stack-agent", "--id", "0", "--scenario", str(path), "--connect", ep], timeout=60)
+        assert p.returncode == 1, p.stderr
+        assert p.stderr.strip().splitlines() == [p.stderr.strip()] and "no HEARTBEAT" in p.stderr, p.stderr
+        p = run_cli(["stack-agent", "--id", "1", "--scenario", str(path), "--connect", ep, "--can-log", "x.asc"])
+        assert p.returncode == 2 and "--can-log: robot 1's driver is sim, not can" in p.stderr, p.stderr
+    finally:
+        router.terminate()
+        router.wait(10)

@@ -9,7 +9,7 @@ import sys
 
 from ..argtypes import fleet_name
 from ..comm.session import ConfigFileError, EndpointError, SessionConfig, SessionError, check_endpoint, open_session
-from ..drivers import UnknownDriver
+from ..drivers import DriverError, UnknownDriver
 from ..policies import PolicyUnavailable
 from ..scenario import DRIVERS, POLICIES, ScenarioError, load_scenario, with_driver_settings, with_overrides
 from .agent import Agent, AgentConfig
@@ -97,7 +97,7 @@ def cli(argv: list[str] | None = None) -> int:
     except (PolicyUnavailable, UnknownDriver, ConfigFileError) as e:
         print(f"stack-agent: {e}", file=sys.stderr)
         return 2
-    except (TimeoutError, SessionError) as e:
+    except (TimeoutError, SessionError, DriverError) as e:  # e.g. a device that does not answer: zero was sent
         print(f"stack-agent: {e}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:

@@ -201,7 +201,10 @@ class CanDriver(Driver):
             raise DriverError(f"can driver {self.robot_id}: cannot open {cfg.interface} {cfg.channel}: {e}") from e
         try:
             if cfg.can_log:
-                self._logger = can.Logger(cfg.can_log)
+                try:
+                    self._logger = can.Logger(cfg.can_log)
+                except (OSError, ValueError) as e:
+                    raise DriverError(f"can driver {self.robot_id}: cannot write the CAN log {cfg.can_log}: {e}") from e
             self._notifier = can.Notifier(self._bus, [_Receiver(self)], timeout=0.05)
             self._start_axes()
         except BaseException:
