@@ -8,6 +8,7 @@ on the ideal simulated base, and a failing device must stop its robot with a nam
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from conftest import run_cli, run_fleet, scenario_dict, write_scenario
@@ -132,3 +133,25 @@ def test_agent_whose_device_does_not_answer_exits_with_one_line(tmp_path):
     finally:
         router.terminate()
         router.wait(10)
+
+
+def test_real_time_jackal_agents_take_the_robots_own_laserscan(tmp_path):
+    """Swap the driver, nothing else: in real time a Jackal agent's lidar is the robot's LaserScan."""
+    proc, rep = run_fleet(write_scenario(tmp_path / "d.yaml", scenario_dict()), tmp_path / "out", "--driver", "jackal",
+                          "--realtime", "--duration", "6", "--no-plots")
+    assert proc.returncode in (0, 1), proc.stdout + proc.stderr
+    assert rep["collisions"] == {"robot_robot": 0, "robot_obstacle": 0}
+    for r in rep["robots"].values():
+        assert r["scans_from_driver"] > 20 and r["sensor_stale_stops"] == 0 and r["driver_fault"] is None
+
+
+def test_a_sensors_own_geometry_is_resampled_to_the_configured_lidar():
+    from stack.agents.lidar import resample
+
+    # a 270-degree sensor in 1-degree steps, each reading = its angle in degrees / 10 (0 at -135 deg)
+    angles = np.radians(np.arange(-135, 136))
+    ranges = (np.degrees(angles) + 135) / 10
+    out = resample(-np.radians(135), np.radians(1), ranges, beams=5, fov=np.pi, range_max=20.0)
+    assert out == pytest.approx([4.5, 9.0, 13.5, 18.0, 20.0])  # -90, -45, 0, 45 deg; 90 deg reads 22.5 -> clipped
+    narrow = resample(-0.1, 0.1, [1.0, 2.0, 3.0], beams=3, fov=np.pi, range_max=5.0)  # outside its span: range
+    assert narrow == pytest.approx([5.0, 2.0, 5.0])

@@ -29,6 +29,7 @@ from ..estimation import EkfConfig, PoseEKF
 from ..policies import make_policy
 from ..scenario import Scenario, fix_due
 from .decision import DecisionLayer, Neighbour, obstacle_distance
+from .lidar import scan_from_driver
 from .timing import LatencyHistogram
 
 log = logging.getLogger("stack.agent")
@@ -120,6 +121,8 @@ class Agent:
         # sensor and neighbour inboxes, filled by zenoh callbacks
         self._cv = threading.Condition()
         self._scan: Scan | None = None
+        self._driver_scan: tuple[object, Scan] | None = None  # (the driver's newest scan, it as our Scan)
+        self.scans_from_driver = 0
         self._scan_arrival = 0.0
         self._odom_arrival = 0.0
         self._clocks: dict[int, Clock] = {}  # lock-step: the newest clocks by step (answered, dead)
@@ -297,7 +300,7 @@ class Agent:
             while True:
                 if self.cfg.stop.is_set():
                     return None
-                scan, odo = self._scan, self.driver.read()
+                scan, odo = self._current_scan(), self.driver.read()
                 if scan is not None and odo is not None and scan.step > self.step and self._odometry_of(scan, odo) \
                         and (not lockstep or self._complete(scan.step, odo)):
                     break
@@ -330,6 +333,21 @@ class Agent:
                 self.sim_now = max(self.sim_now, scan.stamp)
             return k
 
+    def _current_scan(self) -> Scan | None:
+        """The newest scan: the world's (simulation, and every lock-step run), or in real time the robot's
+        own, where its driver reads one (a Jackal's ``LaserScan``: swap the driver, nothing else)."""
+        if self.cfg.lockstep or not self.driver.provides_scan:
+            return self._scan
+        data = self.driver.read_scan()
+        if data is None:
+            return None
+        if self._driver_scan is None or self._driver_scan[0] is not data:
+            step = self._driver_scan[1].step + 1 if self._driver_scan is not None else 0
+            self._driver_scan = (data, scan_from_driver(self.robot, data, step))
+            self.scans_from_driver += 1
+            self._scan_arrival = time.perf_counter()
+        return self._driver_scan[1]
+
     def _odometry_of(self, scan: Scan, odo) -> bool:
         """Is ``odo`` the odometry to go with ``scan``? A simulated base's carries the step; a device's
         (CAN encoders, a rover's telemetry, a bridged base's odometry topic) does not: in lock-step the
@@ -354,7 +372,7 @@ class Agent:
 
     def _control_step(self) -> None:
         with self._cv:
-            scan = self._scan
+            scan = self._current_scan()
             odo = self.driver.read()
             if odo.step < 0 and self.cfg.lockstep and self._odom_count == self._odom_used and self.step >= 0:
                 self.device_odom_late += 1
@@ -497,5 +515,5 @@ class Agent:
                  sensor_stale=self.sensor_stale,
                  fault=self.fault, noticed=dict(self.noticed), led_since=self.led_since,
                  rejected_states=self.rejected_states, neighbour_waits_timed_out=self.neighbour_waits_timed_out,
-                 device_odom_late=self.device_odom_late)
+                 device_odom_late=self.device_odom_late, scans_from_driver=self.scans_from_driver)
         self._diag_pub.put(encode(d))

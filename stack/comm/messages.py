@@ -200,6 +200,7 @@ class Diag(_Msg):
     rejected_states: int = 0  # neighbours' states that claimed an impossible jump
     neighbour_waits_timed_out: int = 0  # lock-step steps that went on without an awaited neighbour state
     device_odom_late: int = 0  # lock-step steps that went on without a new odometry sample from the device
+    scans_from_driver: int = 0  # real time: scans the robot's own driver read (a Jackal's LaserScan)
 
 
 _ENCODER = msgspec.msgpack.Encoder()

@@ -80,6 +80,7 @@ class Driver(ABC):
     name = "base"
     has_imu = False  # True: read() pairs each odometry sample with the gyro rate of the same step
     answers_steps = False  # True: its commands carry the lock-step step number to the world (``sim``)
+    provides_scan = False  # True: ``read_scan()`` gives the robot's own lidar (a bridged ROS 2 robot)
     config_class: type | None = None  # the dataclass of its settings (the scenario's ``<driver>:`` block)
 
     def __init__(self, robot_id: int, limits: DriverLimits, clock=time.monotonic):
@@ -173,6 +174,11 @@ class Driver(ABC):
     def read(self) -> Odometry | None:
         """The newest odometry, or None before the first sample."""
         return self._read()
+
+    def read_scan(self):
+        """The robot's newest lidar scan as its own wire carries it (``LaserScanData``: stamp, angle_min,
+        angle_increment, range_max, ranges), where the driver has one; None otherwise."""
+        return None
 
     def position_fix(self) -> tuple[float, float, float, float] | None:
         """The device's own absolute position estimate ``(x, y, std, stamp)`` in the world frame, where

@@ -110,6 +110,7 @@ class JackalDriver(Driver):
 
     name = "jackal"
     config_class = JackalConfig
+    provides_scan = True
 
     def __init__(self, robot_id: int, limits: DriverLimits, config: JackalConfig | None = None, *,
                  session: zenoh.Session, keys: Any = None, clock: Callable[[], float] = time.monotonic,
