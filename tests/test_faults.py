@@ -108,6 +108,19 @@ def test_fault_flags_are_checked(tmp_path):
         assert proc.returncode == 2 and msg in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
 
 
+def test_sweep_rows_count_crashed_runs_and_stranded_followers():
+    from stack.fleet.bench import _aggregate
+
+    ok = {"success": True, "collisions": {"robot_robot": 0, "robot_obstacle": 1}, "min_robot_distance_m": 2.0,
+          "robots": {"0": {"role": "leader", "final_error_m": 0.1}, "1": {"role": "follower", "final_error_m": 0.4},
+                     "2": {"role": "follower", "final_error_m": 25.0}}, "_exit": 0}
+    empty = {"success": False, "collisions": {"robot_robot": None, "robot_obstacle": None}, "robots": {},
+             "crashed": [{"process": "world"}], "_exit": 3}  # what a run whose world never started reports
+    row = _aggregate("s", "pid", 0.3, [ok, empty])
+    assert row["runs"] == 2 and row["crashed"] == 1 and row["collisions"] == 1 and row["success_rate"] == 0.5
+    assert row["followers_at_slot"] == 0.5 and row["min_robot_distance_m"] == 2.0
+
+
 def test_loss_sweep_writes_a_table_and_a_plot(tmp_path):
     from conftest import run_cli
 
@@ -123,6 +136,7 @@ def test_loss_sweep_writes_a_table_and_a_plot(tmp_path):
     rows = {r["value"]: r for r in data["rows"]}
     assert set(rows) == {0.0, 0.5} and all(r["runs"] == 2 for r in rows.values())
     assert rows[0.0]["delivered_share"] == 1.0 and 0.35 < rows[0.5]["delivered_share"] < 0.65
+    assert all(r["crashed"] == 0 and 0.0 <= r["followers_at_slot"] <= 1.0 for r in rows.values())
     assert "| test-diamond | pid | 0.50 | 2 |" in (tmp_path / "sw" / "loss_sweep.md").read_text()
     assert (tmp_path / "sw" / "loss_sweep.png").stat().st_size > 10_000
     for bad, msg in ((["--sweep", "speed=1"], "PARAM one of loss, latency_ms, burst"), (["--sweep", "loss=0,2"], "out of range"),

@@ -90,8 +90,11 @@ def main(folder: Path, out: Path, seed: int | None = None) -> int:
 # --- sweeps (issue 9): one comm parameter over values x seeds, per scenario and policy ------------
 
 SWEEPS = {"loss": "loss", "latency_ms": "latency_ms", "burst": "burst_loss"}
-SWEEP_COLUMNS = ("scenario", "policy", "value", "runs", "success_rate", "collisions", "min_robot_distance_m",
-                 "formation_error_rms_m", "connectivity", "delivered_share")
+SWEEP_COLUMNS = ("scenario", "policy", "value", "runs", "crashed", "success_rate", "followers_at_slot", "collisions",
+                 "min_robot_distance_m", "formation_error_rms_m", "connectivity", "delivered_share")
+AT_SLOT_M = 1.0
+"""A follower whose final error is within this [m] of its slot counts in ``followers_at_slot`` (success
+judges the leader only, by the contract: a stranded follower shows here)."""
 
 
 def parse_sweep(text: str) -> tuple[str, list[float]]:
@@ -124,6 +127,7 @@ def sweep(folder: Path, out: Path, param: str, values: list[float], *, seeds: in
     from tqdm import tqdm
 
     rows = []
+    crashed_any = False
     total = len(plan) * len(values) * seeds
     bar = tqdm(total=total, unit="run", desc=f"{param} sweep", file=sys.stderr, disable=not sys.stderr.isatty())
     for sc, pol in plan:
@@ -133,7 +137,8 @@ def sweep(folder: Path, out: Path, param: str, values: list[float], *, seeds: in
                 run = with_overrides(sc, policy=pol, seed=seed, duration=duration, **{SWEEPS[param]: value})
                 dest = out / f"{sc.name}-{pol}-{param}{value:g}-s{seed}"
                 code, rep = run_fleet(FleetConfig(scenario=run, out=dest, progress=False, plots=False))
-                reps.append(rep)
+                reps.append(rep | {"_exit": code})
+                crashed_any = crashed_any or code == 3
                 bar.update(1)
             rows.append(_aggregate(sc.name, pol, value, reps))
     bar.close()
@@ -146,20 +151,24 @@ def sweep(folder: Path, out: Path, param: str, values: list[float], *, seeds: in
     _plot_sweep(rows, param, out / f"{param}_sweep.png")
     print(table)
     print(f"\ntable: {out / f'{param}_sweep.md'}; plot: {out / f'{param}_sweep.png'}")
-    return 0
+    return 3 if crashed_any else 0  # a run that did not meet its goal is a result; one that crashed is not
 
 
 def _aggregate(scenario: str, policy: str, value: float, reps: list[dict]) -> dict:
     def vals(key):
         return [r[key] for r in reps if r.get(key) is not None]
 
+    crashed = [r for r in reps if r.get("_exit") == 3 or r.get("crashed")]
+    finals = [v.get("final_error_m") for r in reps for v in (r.get("robots") or {}).values() if v.get("role") == "follower"]
     comm = [r.get("comm", {}) for r in reps]
     sent = sum(c.get("sent", 0) for c in comm)
     delivered = sum(c.get("delivered", 0) for c in comm)
     return {
-        "scenario": scenario, "policy": policy, "value": value, "runs": len(reps),
+        "scenario": scenario, "policy": policy, "value": value, "runs": len(reps), "crashed": len(crashed),
         "success_rate": sum(bool(r.get("success")) for r in reps) / len(reps),
-        "collisions": sum(sum((r.get("collisions") or {}).values() or [0]) for r in reps if r.get("collisions")),
+        "followers_at_slot": sum(f is not None and f <= AT_SLOT_M for f in finals) / len(finals) if finals else None,
+        # a run that crashed before its world wrote anything has no counts (None): it is in "crashed"
+        "collisions": sum(sum(v or 0 for v in (r.get("collisions") or {}).values()) for r in reps),
         "min_robot_distance_m": min(vals("min_robot_distance_m"), default=None),
         "formation_error_rms_m": float(sum(vals("formation_error_rms_m")) / len(vals("formation_error_rms_m")))
         if vals("formation_error_rms_m") else None,
@@ -174,21 +183,35 @@ def _plot_sweep(rows: list[dict], param: str, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(14, 4))
+    from matplotlib.ticker import MaxNLocator
+
+    panels = (("success_rate", "success rate"), ("collisions", "collisions (all seeds)"),
+              ("min_robot_distance_m", "min robot distance [m]"), ("formation_error_rms_m", "formation error RMS [m]"),
+              ("connectivity", "connectivity"))
+    fig, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 4.2))
     keys = sorted({(r["scenario"], r["policy"]) for r in rows})
-    for sc, pol in keys:
+    markers = "osD^v<>ph*"
+    span = max((r["value"] for r in rows), default=1.0) or 1.0
+    for n, (sc, pol) in enumerate(keys):
         rs = sorted((r for r in rows if (r["scenario"], r["policy"]) == (sc, pol)), key=lambda r: r["value"])
-        x = [r["value"] for r in rs]
-        axes[0].plot(x, [r["success_rate"] for r in rs], "o-", label=f"{sc} / {pol}")
-        axes[1].plot(x, [r["collisions"] for r in rs], "o-")
-        axes[2].plot(x, [r["formation_error_rms_m"] if r["formation_error_rms_m"] is not None else float("nan") for r in rs], "o-")
-    for ax, title in zip(axes, ("success rate", "collisions (all seeds)", "formation error RMS [m]")):
+        # a small offset per series, so equal series (e.g. every policy at 100 %) stay visible side by side
+        x = [r["value"] + (n - (len(keys) - 1) / 2) * 0.006 * span for r in rs]
+        for ax, (key, _) in zip(axes, panels):
+            y = [r[key] if r[key] is not None else float("nan") for r in rs]
+            ax.plot(x, y, marker=markers[n % len(markers)], linestyle="-", markersize=5, alpha=0.8, label=f"{sc} / {pol}")
+    for ax, (key, title) in zip(axes, panels):
         ax.set_xlabel({"loss": "loss probability", "latency_ms": "latency [ms]", "burst": "mean burst loss"}[param])
+        ax.set_ylabel(title)
         ax.set_title(title)
         ax.grid(alpha=0.3)
     axes[0].set_ylim(-0.05, 1.05)
-    axes[0].legend(fontsize=7)
+    axes[1].set_ylim(-0.5, max([r["collisions"] or 0 for r in rows] + [1]) + 0.5)
+    axes[1].yaxis.set_major_locator(MaxNLocator(integer=True))
+    axes[4].set_ylim(-0.05, 1.05)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 5), fontsize=8)
+    fig.subplots_adjust(bottom=0.25)
     fig.suptitle(f"{param} sweep")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
