@@ -128,6 +128,7 @@ class RobotConfig:
     pid: PidConfig = field(default_factory=PidConfig)
     aina: AinaConfig = field(default_factory=AinaConfig)
     qlearn: dict[str, Any] = field(default_factory=dict)  # ``--policy qlearn`` settings (QlearnPolicyConfig fields)
+    fuzzy: dict[str, Any] = field(default_factory=dict)  # ``--policy fuzzy|fuzzy-lstm`` settings (see _fuzzy_settings)
     goal: tuple[float, float] | None = None
     driver_params: dict[str, dict[str, Any]] = field(default_factory=dict)
 
@@ -340,7 +341,7 @@ def _kind(value: Any) -> str:
     return type(value).__name__
 
 
-_ROBOT_KEYS = {"radius", "v_max", "w_max", "lidar", "odom_noise", "imu_noise", "fix", "comm_range", "cmd_timeout", "base", "pid", "aina", "qlearn", "policy", "driver"} | set(DRIVERS)
+_ROBOT_KEYS = {"radius", "v_max", "w_max", "lidar", "odom_noise", "imu_noise", "fix", "comm_range", "cmd_timeout", "base", "pid", "aina", "qlearn", "fuzzy", "policy", "driver"} | set(DRIVERS)
 
 
 def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict[str, Any]:
@@ -401,6 +402,8 @@ def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict
         if "v_cruise" in vals and vals["v_cruise"] > 1.0:
             raise rd.fail(f"{path}.pid.v_cruise", f"must be <= 1 (a fraction of v_max), got {vals['v_cruise']:g}")
         out["pid"] = replace(prev, **vals)
+    if "fuzzy" in d:
+        out["fuzzy"] = dict(out.get("fuzzy", {})) | _fuzzy_settings(rd, d["fuzzy"], f"{path}.fuzzy")
     if "qlearn" in d:
         out["qlearn"] = dict(out.get("qlearn", {})) | _qlearn_settings(rd, d["qlearn"], f"{path}.qlearn")
     if "aina" in d:
@@ -449,6 +452,27 @@ def _qlearn_settings(rd: _Reader, value: Any, path: str) -> dict[str, Any]:
         else:
             out[k] = rd.number(v, p, 0.0, lo_open=True)
     return out
+
+
+def _fuzzy_settings(rd: _Reader, value: Any, path: str) -> dict[str, Any]:
+    """``fuzzy:`` (Chang 2020): ``coordinator`` (flc, lstm, none: the paper's "no MRC"), ``params`` (a JSON
+    of trained parameters) and the fields of the policy's ``FuzzyConfig``, ``MrcConfig``, ``SupervisorConfig``;
+    checked by building the policy's config."""
+    from types import SimpleNamespace
+
+    from .policies.fuzzy.mrc import MrcConfig
+    from .policies.fuzzy.policy import FuzzyConfig, make_fuzzy
+    from .policies.fuzzy.rbc import SupervisorConfig
+
+    allowed = {"params"} | {f.name for c in (FuzzyConfig, MrcConfig, SupervisorConfig) for f in fields(c)} - {"mrc", "supervisor"}
+    m = dict(rd.mapping(value or {}, path, allowed))
+    if "params" in m and not Path(str(m["params"])).is_file():
+        raise rd.fail(f"{path}.params", f"no such file: {m['params']}")
+    try:
+        make_fuzzy(SimpleNamespace(fuzzy=m, lidar=LidarConfig(), v_max=1.0, radius=0.5))
+    except (TypeError, ValueError, KeyError) as e:
+        raise rd.fail(path, str(e)) from None
+    return m
 
 
 def _driver_settings(rd: _Reader, name: str, value: Any, path: str) -> dict[str, Any]:

@@ -22,3 +22,15 @@ def make_qlearn(robot, *, seed: int = 0, **kw):
     from .qlearn import make_qlearn as make
 
     return make(robot, seed=seed, **kw)
+
+
+def make_fuzzy(robot, *, seed: int = 0, **kw):
+    from .fuzzy import make_fuzzy as make
+
+    return make(robot, seed=seed, **kw)
+
+
+def make_fuzzy_lstm(robot, *, seed: int = 0, **kw):
+    from .fuzzy import make_fuzzy_lstm as make
+
+    return make(robot, seed=seed, **kw)

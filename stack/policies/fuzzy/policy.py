@@ -1,0 +1,263 @@
+"""``--policy fuzzy`` / ``fuzzy-lstm``: Chang 2020's hierarchical controller as one robot's policy.
+
+Per control step (Algorithm 1, for this robot only):
+  1. L_1..L_8 from the newest scan (:func:`.rbc.sectors`);
+  2. D_goal of this robot and of every neighbour it has heard (reconstructed from the
+     Observation's [distance, bearing] and this robot's pose), neighbour speeds by tracking;
+  3. the decentralised MRC (:class:`.mrc.Coordinator`): alpha_i, v_r by eq. (1)-(2), beta_i and
+     theta_adj by eq. (7)-(8) (FLC_SR for ``fuzzy``, the peephole LSTM for ``fuzzy-lstm``, none for
+     ``coordinator="none"``: constant v0, theta_adj = theta_goal);
+  4. the RBC (:class:`.rbc.RobotBehaviourController`): supervisor, left/right BF or TS -> theta_r;
+  5. (v, w) = (v_r, theta_r / turn_time).
+
+What the Observation does not carry, and how we stand in for it:
+- the common target: each robot knows only its own goal (``obs.target``). Goals of an arrival-time
+  task lie "a little apart around the target", so a neighbour's distance to the target is taken as
+  its distance to this robot's goal (error at most the spread of the goals) unless
+  ``FuzzyConfig.target`` names the common target;
+- neighbours' speeds: not in the Observation; estimated from successive reconstructed positions
+  (nearest-neighbour association, gate ``track_gate``), smoothed by ``track_smooth``;
+- the age of a neighbour's state: not in the Observation (the agent drops states older than
+  3 s and extrapolates the rest along their reported velocity for at most 1 s); ages are 0 here.
+If the Observation grows ``neighbour_states`` ((n, 6) rows [x, y, yaw, v, w, age], world frame)
+and ``arrival_target`` (the centroid of every robot's goal in an arrival-time task), they are used
+instead: exact speeds and ages, and the common target (proposed; see the issue's report).
+
+Additions of ours (the paper's Webots robots could not hit what its simulator kept them from):
+- in TS the speed is multiplied by max(``cos_floor``, cos theta_r) (a unicycle turns before it
+  speeds off sideways); near the goal it is at most d_goal / ``t_brake``;
+- a guard: an obstacle within ``guard`` of the robot's centre in L_2..L_7 caps v at ``v_guard``,
+  and one within ``side_guard`` in L_1-L_2 (L_7-L_8) makes it steer away by ``side_push`` (robots converging
+  on neighbouring goals touched side by side without it);
+- at the goal (d_goal < ``arrive_tol``) the robot stops and stays (until pushed 1 m off);
+- once a neighbour has arrived (standing still within ``arrived_radius`` of the target) the
+  others drive straight at v_max: nothing left to wait for.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..base import Observation, Policy
+from .mrc import Coordinator, FlcSr, LstmMrc, LstmWeights, MrcConfig, PeerEstimate
+from .rbc import BF_LEFT, BF_RIGHT, TS, BoundaryFollower, RbcConfig, RobotBehaviourController, SupervisorConfig, sectors
+from .tsk import TSK
+
+PARAMS_DIR = Path(__file__).resolve().parent / "params"
+PARAMS_FILE = PARAMS_DIR / "chang2020.json"
+COORDINATORS = ("flc", "lstm", "none")
+
+
+@dataclass
+class FuzzyConfig:
+    coordinator: str = "flc"
+    """"flc" (FLC_SR), "lstm" (recurrent MRC) or "none" (each robot alone, the paper's "no MRC")."""
+    target: tuple[float, float] | None = None
+    """The common target [m, world]; None: this robot's own goal stands in for it (see module doc)."""
+    turn_time: float = 1.0
+    """[s] steering angle -> yaw rate: w = theta_r / turn_time."""
+    arrive_tol: float = 0.4
+    """[m] at the goal: stop and stay."""
+    t_brake: float = 1.5
+    """[s] near the goal v <= d_goal / t_brake."""
+    cos_floor: float = 0.2
+    """TS: v_r times max(cos_floor, cos theta_r)."""
+    guard: float = 0.65
+    """[m] an obstacle this near (centre to hit point) in L2..L7 caps the speed ..."""
+    v_guard: float = 0.1
+    """[m/s] ... at this."""
+    side_guard: float = 0.6
+    """[m] something this near in L1-L2 (L7-L8), and nothing as near on the other side, ..."""
+    side_push: float = 0.3
+    """[rad] ... makes the robot steer at least this much away from it."""
+    arrived_radius: float = 2.0
+    """[m] a neighbour standing (speed < 0.05 m/s) this near the target has arrived."""
+    track_gate: float = 1.0
+    """[m] association gate for neighbour tracking (plus v_max dt)."""
+    track_smooth: float = 0.3
+    """Exponential smoothing weight of a new speed sample."""
+    mrc: MrcConfig = field(default_factory=MrcConfig)
+    supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
+
+
+def hand_set_params() -> dict:
+    """Hand-set parameters (before PSO): a 10-rule left BF controller, a 5-rule FLC_SR, a small LSTM.
+
+    BF rules on (L5, L6, L7, L8) [m], consequent theta [rad, CCW]; a straight wall at d on the left
+    reads (2.61 d, 1.41 d, 1.08 d, d)."""
+    D = 10.0  # a width this large makes an input "don't care" in a rule
+    bf_m = [[3.0, 1.4, 1.0, 0.8],     # parallel at 0.8 m: straight on
+            [3.0, 1.4, 1.0, 0.55],    # too close: turn right
+            [3.0, 1.4, 1.0, 1.1],     # a little far: turn left
+            [3.0, 2.0, 1.8, 1.5],     # too far: turn left more
+            [0.6, 1.0, 1.0, 1.0],     # wall ahead (inner corner): turn right hard
+            [3.0, 0.6, 1.0, 1.0],     # front-left close: turn right
+            [5.0, 5.0, 5.0, 5.0],     # wall lost (outer corner): turn left, radius ~0.8 m
+            [3.0, 1.4, 0.6, 1.0],     # left-front close: turn right
+            [5.0, 5.0, 5.0, 0.8],     # corner passing behind: turn left gently
+            [5.0, 1.2, 0.9, 0.8]]     # ideal, open ahead: straight
+    bf_s = [[D, D, 0.3, 0.15], [D, D, D, 0.12], [D, D, D, 0.15], [D, D, 0.4, 0.3], [0.4, D, D, D],
+            [D, 0.25, D, D], [D, D, 0.8, 0.8], [D, D, 0.2, D], [D, D, 1.0, 0.3], [2.0, 0.3, 0.2, 0.15]]
+    bf_a = [[0.0], [-0.8], [0.4], [0.8], [-1.5], [-1.2], [0.5], [-1.0], [0.5], [0.0]]
+    # FLC_SR on (D1, Dn, v1, vn, dD) / (50 m, 50 m, 1 m/s, 1 m/s, 50 m) -> (alpha_1, alpha_n)
+    sr_m = [[0.3, 0.6, 0.5, 0.5, 0.3],   # large gap: slow the nearest, speed up the farthest
+            [0.2, 0.2, 0.5, 0.5, 0.0],   # no gap: keep speeds
+            [0.2, 0.2, 0.2, 0.8, 0.0],   # no gap, nearest slow and farthest fast: hold
+            [0.2, 0.2, 0.8, 0.2, 0.0],   # no gap, nearest fast and farthest slow: slow the nearest
+            [0.1, 0.15, 0.5, 0.5, 0.05]]  # small gap close in: gentle
+    sr_s = [[0.5, 0.5, 0.5, 0.5, 0.15], [0.5, 0.5, 0.25, 0.25, 0.04], [0.5, 0.5, 0.2, 0.2, 0.04],
+            [0.5, 0.5, 0.2, 0.2, 0.04], [0.5, 0.5, 0.5, 0.5, 0.04]]
+    sr_a = [[0.9, 1.1], [1.0, 1.0], [1.0, 1.0], [0.95, 1.03], [0.97, 1.03]]
+    rng = np.random.default_rng(7)
+    lstm = LstmWeights.from_vector(rng.normal(0, 0.3, LstmWeights.N_PARAMS))
+    lstm.W[0, 0, 4] = -3.0  # cell 0 (-> alpha_1) driven down by Delta D
+    lstm.W[0, 1, 4] = 3.0  # cell 1 (-> alpha_n) up
+    return {"bf_left": TSK(bf_m, bf_s, bf_a).to_dict(), "flc_sr": TSK(sr_m, sr_s, sr_a).to_dict(),
+            "lstm": lstm.to_dict(), "meta": {"source": "hand-set"}}
+
+
+def load_params(path: str | Path | None = None) -> dict:
+    """The shipped parameters (``params/chang2020.json``), or the hand-set ones where it lacks a part."""
+    p = Path(path) if path else PARAMS_FILE
+    out = hand_set_params()
+    if p.exists():
+        out.update(json.loads(p.read_text()))
+    return out
+
+
+class FuzzyPolicy(Policy):
+    name = "fuzzy"
+    hybrid = False  # Chang's RBC has its own avoidance: it drives in every situation
+
+    def __init__(self, cfg: FuzzyConfig | None = None, params: dict | None = None, *, fov: float = math.pi,
+                 range_max: float = 5.0, v_max: float = 1.0, radius: float = 0.3):
+        self.cfg = cfg = cfg or FuzzyConfig()
+        if cfg.coordinator not in COORDINATORS:
+            raise ValueError(f"coordinator must be one of {COORDINATORS}, got {cfg.coordinator!r}")
+        self.params = params = params or load_params()
+        self.name = {"flc": "fuzzy", "lstm": "fuzzy-lstm", "none": "fuzzy-nomrc"}[cfg.coordinator]
+        self.fov, self.range_max, self.v_max, self.radius = fov, range_max, v_max, radius
+        bf = BoundaryFollower(TSK.from_dict(params["bf_left"]))
+        self.rbc = RobotBehaviourController(bf, RbcConfig(turn_time=cfg.turn_time, supervisor=cfg.supervisor),
+                                            fov=fov, range_max=range_max)
+        core = None
+        if cfg.coordinator == "flc":
+            core = FlcSr(TSK.from_dict(params["flc_sr"]))
+        elif cfg.coordinator == "lstm":
+            core = LstmMrc(LstmWeights.from_dict(params["lstm"]))
+        mcfg = cfg.mrc
+        if mcfg.v_max > v_max:
+            mcfg = replace(mcfg, v_max=v_max, v0=min(mcfg.v0, v_max))
+        self.mrc = Coordinator(core, mcfg)
+        self.reset()
+
+    def reset(self) -> None:
+        self.rbc.reset()
+        self.mrc.reset()
+        self.arrived = False
+        self.tracks: list[tuple[float, float, float]] = []  # (x, y, v) of neighbours last step
+        self.behaviour = TS
+        self.last = None  # the last Coordination (for tests and the numpy world's logs)
+
+    # -- neighbours -------------------------------------------------------------------------
+    def _peers(self, obs: Observation, target: tuple[float, float]) -> list[PeerEstimate]:
+        states = getattr(obs, "neighbour_states", None)  # proposed Observation field, see the module doc
+        if states is not None and np.asarray(states).size:
+            st = np.asarray(states, float).reshape(-1, 6)  # x, y, yaw, v, w, age
+            return [PeerEstimate(math.hypot(x - target[0], y - target[1]), v, age) for x, y, _, v, _, age in st]
+        nb = np.asarray(obs.neighbours, float).reshape(-1, 2)
+        pos = [(obs.x + d * math.cos(obs.yaw + b), obs.y + d * math.sin(obs.yaw + b)) for d, b in nb]
+        gate = self.cfg.track_gate + self.v_max * obs.dt
+        new_tracks, peers = [], []
+        used: set[int] = set()
+        for px, py in pos:
+            best, bd = None, gate
+            for k, (tx, ty, _) in enumerate(self.tracks):
+                dd = math.hypot(px - tx, py - ty)
+                if k not in used and dd < bd:
+                    best, bd = k, dd
+            if best is None:
+                v = self.mrc.cfg.v0
+            else:
+                used.add(best)
+                s = self.cfg.track_smooth
+                v = (1 - s) * self.tracks[best][2] + s * bd / max(obs.dt, 1e-3)
+            new_tracks.append((px, py, v))
+            peers.append(PeerEstimate(math.hypot(px - target[0], py - target[1]), v, 0.0))
+        self.tracks = new_tracks
+        return peers
+
+    # -- the step ---------------------------------------------------------------------------
+    def act(self, obs: Observation) -> tuple[float, float]:
+        cfg = self.cfg
+        d_g, theta_goal = float(obs.d_g), float(obs.alpha_g)
+        if self.arrived and d_g > cfg.arrive_tol + 1.0:
+            self.arrived = False
+        if d_g < cfg.arrive_tol:
+            self.arrived = True
+        scan = obs.scans[-1] if np.asarray(obs.scans).size else np.zeros(0)
+        L = sectors(scan, self.fov, obs.scan_range or self.range_max)
+        own_goal = obs.target if obs.target is not None else (obs.x + d_g * math.cos(obs.yaw + theta_goal),
+                                                               obs.y + d_g * math.sin(obs.yaw + theta_goal))
+        common = cfg.target or getattr(obs, "arrival_target", None)  # proposed Observation field
+        target = common or own_goal
+        d_own = math.hypot(obs.x - target[0], obs.y - target[1]) if common else d_g
+        peers = self._peers(obs, target)
+        if self.arrived:
+            self.behaviour = "arrived"
+            return 0.0, 0.0
+        someone_in = any(p.d_goal < cfg.arrived_radius and p.v < 0.05 for p in peers)
+        co = self.mrc.step(d_own, [] if someone_in else peers)
+        self.last = co
+        v = self.mrc.cfg.v_max if (someone_in and cfg.coordinator != "none") else co.v
+        theta_adj = self.mrc.theta_adj(theta_goal, co)
+        self.behaviour, theta_r = self.rbc.steer(L, d_g, theta_goal, theta_adj)
+        left_near, right_near = L[6:].min() < cfg.side_guard, L[:2].min() < cfg.side_guard
+        if left_near != right_near:  # never turn into something beside the robot; ease away from it
+            theta_r = min(theta_r, -cfg.side_push) if left_near else max(theta_r, cfg.side_push)
+        if self.behaviour == TS:
+            v *= max(cfg.cos_floor, math.cos(theta_r))
+        v = min(v, max(0.05, d_g / cfg.t_brake))
+        if L[1:7].min() < cfg.guard:
+            v = min(v, cfg.v_guard)
+        return float(v), float(theta_r / cfg.turn_time)
+
+
+def make_fuzzy(robot=None, *, seed: int = 0, coordinator: str = "flc", params: str | Path | None = None,
+               **_) -> FuzzyPolicy:
+    """Factory: ``robot`` is a :class:`stack.scenario.RobotConfig` (duck-typed; None: defaults).
+
+    ``robot.fuzzy`` (a dict of :class:`FuzzyConfig`, :class:`MrcConfig` and :class:`SupervisorConfig`
+    fields plus ``coordinator`` and ``params``, when the scenario reader grows that key) overrides the
+    defaults (unknown keys: ValueError; the scenario key ``robot.fuzzy``, e.g. ``{coordinator: none}`` for the
+    paper's "no MRC" runs); ``coordinator`` picks FLC_SR, the LSTM or none; ``params`` a JSON file
+    (default: the shipped ``params/chang2020.json``). ``seed`` is unused (the policy is deterministic)."""
+    kw = dict(getattr(robot, "fuzzy", None) or {}) if robot is not None else {}
+    coordinator = kw.pop("coordinator", coordinator)
+    params = kw.pop("params", params)
+    names = {f.name for f in fields(FuzzyConfig)}
+    mrc_kw = {k: kw.pop(k) for k in list(kw) if k in {f.name for f in fields(MrcConfig)} and k not in names}
+    sup_kw = {k: kw.pop(k) for k in list(kw) if k in {f.name for f in fields(SupervisorConfig)} and k not in names}
+    unknown = set(kw) - names
+    if unknown:
+        raise ValueError(f"robot.fuzzy: unknown keys {sorted(unknown)}")
+    cfg = FuzzyConfig(coordinator=coordinator, mrc=MrcConfig(**mrc_kw), supervisor=SupervisorConfig(**sup_kw),
+                      **{k: (tuple(v) if k == "target" else v) for k, v in kw.items()})
+    if robot is None:
+        return FuzzyPolicy(cfg, load_params(params))
+    return FuzzyPolicy(cfg, load_params(params), fov=robot.lidar.fov, range_max=robot.lidar.range,
+                       v_max=robot.v_max, radius=robot.radius)
+
+
+def make_fuzzy_lstm(robot=None, **kw) -> FuzzyPolicy:
+    kw.setdefault("coordinator", "lstm")
+    return make_fuzzy(robot, **kw)
+
+
+__all__ = ["BF_LEFT", "BF_RIGHT", "TS", "FuzzyConfig", "FuzzyPolicy", "PARAMS_FILE", "hand_set_params",
+           "load_params", "make_fuzzy", "make_fuzzy_lstm"]
