@@ -11,6 +11,7 @@ REGISTRY: dict[str, str] = {
     "pid": "stack.policies.factories:make_pid",
     "aina": "stack.policies.factories:make_aina",
     "qlearn": "stack.policies.factories:make_qlearn",
+    "drl": "stack.policies.factories:make_drl",
     "fuzzy": "stack.policies.factories:make_fuzzy",
     "fuzzy-lstm": "stack.policies.factories:make_fuzzy_lstm",
 }

@@ -34,3 +34,9 @@ def make_fuzzy_lstm(robot, *, seed: int = 0, **kw):
     from .fuzzy import make_fuzzy_lstm as make
 
     return make(robot, seed=seed, **kw)
+
+
+def make_drl(robot, *, seed: int = 0, **kw):
+    from .drl.policy import make_drl as make
+
+    return make(robot, seed=seed, **kw)

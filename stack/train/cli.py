@@ -17,6 +17,7 @@ from . import EXIT_BAD_INPUT, PROG, InputError
 #: subcommand -> module (``add_arguments(parser)``, ``main(args) -> int``)
 SUBCOMMANDS: dict[str, str] = {
     "qlearn": "stack.train.qlearn",
+    "drl": "stack.train.drl",
     "fuzzy": "stack.train.fuzzy",
 }
 

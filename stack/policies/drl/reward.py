@@ -1,0 +1,42 @@
+"""Bai 2022 eq. (14)-(17): r_t = r_g + r_c + r_a, vectorised over robots (numpy).
+
+  eq. (15) r_g = 20                                   if |p_t - p_g| <= 0.5
+               = 0.5 (|p_{t-1} - p_g| - |p_t - p_g|)  otherwise
+  eq. (16) r_c = -1.0  if |p_t - p~_t| < 2 R_d or |p_t - B_k| < R_d     (a collision)
+               = -0.3  else if |p_t - p~_t| < 3 R_d or |p_t - B_k| < 2 R_d
+               = 0     otherwise
+  eq. (17) r_a = -0.05 (|v_t - v_{t-1}| + |w_t - w_{t-1}|)   (commanded actions)
+
+|p_t - p~_t| is the centre distance to the nearest other robot, |p_t - B_k| the distance from
+the robot's centre to the nearest obstacle surface.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+R_D = 0.5  # Table II
+GOAL_TOL = 0.5  # eq. (15)
+R_GOAL = 20.0
+K_PROGRESS = 0.5
+R_COLLIDE = -1.0
+R_NEAR = -0.3
+K_ACTION = 0.05
+
+
+def reward(d_prev, d_now, d_robot, d_obstacle, a_prev, a_now, radius: float = R_D):
+    """Returns (r, arrived, collided), arrays of the broadcast shape of the inputs.
+
+    d_prev, d_now: distance to the target before and after the step; d_robot: centre distance to
+    the nearest other robot (inf: none); d_obstacle: distance to the nearest obstacle surface;
+    a_prev, a_now: (..., 2) commanded [v, w] of the previous and this step."""
+    d_prev, d_now = np.asarray(d_prev, float), np.asarray(d_now, float)
+    d_robot, d_obstacle = np.asarray(d_robot, float), np.asarray(d_obstacle, float)
+    arrived = d_now <= GOAL_TOL
+    r_g = np.where(arrived, R_GOAL, K_PROGRESS * (d_prev - d_now))  # eq. (15)
+    collided = (d_robot < 2 * radius) | (d_obstacle < radius)
+    near = (d_robot < 3 * radius) | (d_obstacle < 2 * radius)
+    r_c = np.where(collided, R_COLLIDE, np.where(near, R_NEAR, 0.0))  # eq. (16)
+    da = np.abs(np.asarray(a_now, float) - np.asarray(a_prev, float))
+    r_a = -K_ACTION * (da[..., 0] + da[..., 1])  # eq. (17)
+    return r_g + r_c + r_a, arrived, collided  # eq. (14)

@@ -1,0 +1,219 @@
+"""Bai 2022 DRL policy: observation, reward, network, the numpy training world, training, shipped weights."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+torch.set_num_threads(1)  # as in every agent process; more threads only contend on a loaded machine
+
+from conftest import scenario_dict  # noqa: E402
+from stack.policies.base import Observation  # noqa: E402
+from stack.policies.drl.network import DuelingQNet  # noqa: E402
+from stack.policies.drl.observation import ACTIONS, goal_features, neighbour_features, scan_features  # noqa: E402
+from stack.policies.drl.reward import reward  # noqa: E402
+from stack.train.drlworld import DrlWorld, ray_cast, scene_arrays  # noqa: E402
+
+
+# --- observation, actions, reward ---------------------------------------------------------
+def test_actions_are_the_papers_fifteen():
+    assert ACTIONS.shape == (15, 2)
+    assert sorted(set(ACTIONS[:, 0])) == [0.0, 0.5, 1.0]
+    assert sorted(set(ACTIONS[:, 1])) == [-1.0, -0.5, 0.0, 0.5, 1.0]
+
+
+def test_normalisation_eq_11_13():
+    g = goal_features(1.5, math.pi / 2, 0.5, -0.2)
+    assert np.allclose(g, [0.5, 0.5, 0.5, -0.2])
+    assert goal_features(7.0, -math.pi, 0, 0)[0] == 1.0  # clipped at d_n = 3 m
+    assert np.allclose(neighbour_features([[5.0, math.pi / 4], [2.0, 0.0]]), [[0.5, 0.25], [0.2, 0.0]])
+    s = scan_features(np.full((2, 180), 2.5))
+    assert s.shape == (3, 180) and np.allclose(s, 0.5)  # two scans: the oldest repeated
+    assert scan_features(np.zeros((0, 0))).shape == (3, 180)
+    assert np.allclose(scan_features(np.full((3, 90), 10.0)), 1.0)  # resampled, clipped at 5 m
+
+
+@pytest.mark.parametrize("case, args, expect, arrived, collided", [
+    ("progress", (3.0, 2.9, np.inf, 4.0, (1, 0), (1, 0)), 0.05, False, False),
+    ("arrival", (0.6, 0.5, np.inf, 4.0, (1, 0), (1, 0)), 20.0, True, False),
+    ("robot collision", (3.0, 3.0, 0.99, 4.0, (0, 0), (0, 0)), -1.0, False, True),
+    ("obstacle collision", (3.0, 3.0, np.inf, 0.49, (0, 0), (0, 0)), -1.0, False, True),
+    ("near robot", (3.0, 3.0, 1.4, 4.0, (0, 0), (0, 0)), -0.3, False, False),
+    ("near obstacle", (3.0, 3.0, np.inf, 0.9, (0, 0), (0, 0)), -0.3, False, False),
+    ("action change", (3.0, 3.0, np.inf, 4.0, (0.0, -1.0), (1.0, 0.5)), -0.05 * 2.5, False, False),
+    ("all terms", (1.0, 0.8, 1.2, 4.0, (0.5, 0.0), (1.0, 0.0)), 0.1 - 0.3 - 0.025, False, False),
+])
+def test_reward_eq_14_17(case, args, expect, arrived, collided):
+    r, a, c = reward(*args)
+    assert math.isclose(float(r), expect, abs_tol=1e-9), case
+    assert bool(a) == arrived and bool(c) == collided
+
+
+# --- network ---------------------------------------------------------------------------------
+@pytest.mark.parametrize("n", [0, 1, 7])
+def test_network_shapes(n):
+    net = DuelingQNet()
+    q = net(torch.rand(5, 3, 180), torch.rand(5, 4), torch.rand(5, n, 2))
+    assert q.shape == (5, 15)
+    from stack.policies.drl.policy import DrlPolicy
+
+    p = DrlPolicy(net=net)
+    obs = Observation(d_g=4.0, alpha_g=0.3, v=0.5, w=0.0, neighbours=np.random.rand(n, 2) * [10, 3], scans=np.full((3, 180), 5.0))
+    v, w = p.act(obs)
+    assert (v, w) in {tuple(a) for a in ACTIONS.tolist()}
+
+
+def test_padded_neighbours_equal_unpadded():
+    torch.manual_seed(0)
+    net = DuelingQNet().eval()
+    s, g = torch.rand(3, 3, 180), torch.rand(3, 4)
+    seqs = [torch.rand(k, 2) for k in (0, 2, 4)]
+    pad = torch.zeros(3, 4, 2)
+    for i, q in enumerate(seqs):
+        pad[i, : len(q)] = q
+    batched = net(s, g, pad, torch.tensor([0, 2, 4]))
+    for i, q in enumerate(seqs):
+        one = net(s[i:i + 1], g[i:i + 1], q[None])
+        assert torch.allclose(batched[i], one[0], atol=1e-6)
+
+
+# --- the numpy world against pybullet -----------------------------------------------------------
+def _random_scene(rng):
+    obs = []
+    for _ in range(rng.integers(1, 6)):
+        obs.append({"type": "cylinder", "x": float(rng.uniform(-6, 6)), "y": float(rng.uniform(-6, 6)), "radius": float(rng.uniform(0.2, 1.0))})
+    for _ in range(rng.integers(1, 5)):
+        obs.append({"type": "box", "x": float(rng.uniform(-6, 6)), "y": float(rng.uniform(-6, 6)), "size_x": float(rng.uniform(0.3, 2.5)),
+                    "size_y": float(rng.uniform(0.3, 2.5)), "yaw_deg": float(rng.uniform(-180, 180))})
+    for _ in range(rng.integers(0, 3)):
+        a, b = rng.uniform(-7, 7, 2), rng.uniform(-7, 7, 2)
+        obs.append({"type": "wall", "from": [float(a[0]), float(a[1])], "to": [float(b[0]), float(b[1])], "thickness": 0.2})
+    return obs
+
+
+def test_numpy_lidar_equals_pybullet():
+    """Every well-conditioned beam within 1 cm of pybullet's ``rayTestBatch``.
+
+    A beam that grazes a body (passes within 5 mm of a circle's tangent or a box's corner) is
+    ill-conditioned: a 1 mm change of geometry flips it between a hit metres away and a miss,
+    and Bullet's float32 ray tests differ from exact geometry there by up to a few cm. Such beams
+    are found by casting against every body grown and shrunk by 5 mm (the two disagree by > 10 cm) and
+    are not compared; they must stay rare."""
+    pytest.importorskip("pybullet")
+    from stack.scenario import parse_scenario
+    from stack.sim_bridge.geometry import distance_to_obstacles
+    from stack.sim_bridge.world import World
+
+    rng = np.random.default_rng(7)
+    checked = grazing = 0
+    eps = 0.005
+    for _ in range(12):
+        obstacles = _random_scene(rng)
+        robots = [{"id": i, "role": "leader" if i == 0 else "follower", "pose": [0.0, 0.0, 0.0]} for i in range(4)]
+        sc = parse_scenario(scenario_dict(world={"obstacles": obstacles}, robots=robots), "drl.yaml")
+        world = World(sc)
+        circles, boxes = scene_arrays(sc.obstacles)
+        for _ in range(5):
+            pts = []  # robots clear of every body (a ray starting inside one is not compared)
+            while len(pts) < 4:
+                p = rng.uniform(-7, 7, 2)
+                if distance_to_obstacles(p[0], p[1], sc.obstacles) > 0.6 and all(math.hypot(*(p - q)) > 1.1 for q in pts):
+                    pts.append(p)
+            pts = np.array(pts)
+            world.x[:], world.y[:], world.yaw[:] = pts[:, 0], pts[:, 1], rng.uniform(-math.pi, math.pi, 4)
+            world._sync_bodies()
+            ref = world.lidar()
+            for i in range(4):
+                circ = np.vstack([circles, [[world.x[j], world.y[j], 0.5] for j in range(4) if j != i]])
+                args = (np.array(world.x[i]), np.array(world.y[i]), np.array(world.yaw[i]))
+                cast = lambda c, b: ray_cast(*args, c, b, world.beam_angles[i], 0.51, 5.0)  # noqa: E731
+                r = cast(circ, boxes)
+                grow, shrink = np.array([0, 0, eps]), np.array([0, 0, eps, eps, 0])
+                ok = np.abs(cast(circ + grow, boxes + shrink) - cast(circ - grow, boxes - shrink)) < 0.1
+                assert np.abs(r - ref[i])[ok].max() < 0.01, np.sort(np.abs(r - ref[i])[ok])[-5:]
+                checked += ok.sum()
+                grazing += (~ok).sum()
+        world.close()
+    assert checked + grazing == 12 * 5 * 4 * 180
+    print(f"compared {checked} beams, {grazing} grazing")
+    assert grazing < 0.01 * checked, (grazing, checked)
+
+
+def test_world_steps_like_the_unicycle_and_detects_collisions():
+    w = DrlWorld(2, 1, seed=0)
+    w.circles[:] = [1e4, 1e4, 0.0]
+    w.boxes[:] = [1e4, 1e4, 0, 0, 0]
+    w.circles[1, 0] = [2.0, 0.0, 0.5]
+    w.x[:], w.y[:], w.yaw[:], w.gx[:], w.gy[:] = 0.0, 0.0, 0.0, 20.0, 0.0
+    for _ in range(30):
+        r, arr, col, done, _ = w.step(np.full((2, 1), 12), ACTIONS)  # v = 1, w = 0
+        if done[1]:
+            break
+    assert col[1, 0] and not w.active[1, 0] and w.active[0, 0]
+    assert 1.0 < w.x[1, 0] <= 1.1 and abs(w.y[0, 0]) < 1e-9  # stopped within the step that came within R_d
+
+
+# --- training -------------------------------------------------------------------------------------
+def test_td_loss_decreases_and_a_short_run_writes_its_outputs(tmp_path):
+    from stack.train.drl import DrlJob, Learner, Replay, pick, train
+
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    w = DrlWorld(8, 2, seed=1, cfg=None)
+    D = Replay(2000, 180, 3, rng)
+    rows = np.arange(8)
+    obs = w.observe()
+    for _ in range(60):  # random play, the trained robot's transitions
+        a = rng.integers(0, 15, (8, 4))
+        r, arr, col, done, _ = w.step(a, ACTIONS)
+        obs2 = w.observe()
+        D.add(pick(obs, rows, w.trained), a[rows, w.trained], r[rows, w.trained], pick(obs2, rows, w.trained),
+              (arr | col)[rows, w.trained].astype(np.float32), 0.99)
+        w.reset(done)
+        obs = w.observe()
+    L = Learner(DrlJob(lr=1e-3))
+    everything = D.get(np.arange(D.n))
+    with torch.no_grad():
+        before = float(L.loss(everything))
+    for _ in range(80):
+        L.update(D.sample(64))
+    with torch.no_grad():
+        after = float(L.loss(everything))
+    assert after < 0.7 * before, (before, after)
+
+    job = DrlJob(stage=2, out=tmp_path, episodes=6, envs=4, batch=16, learn_start=32, max_steps=40, copy_every=50,
+                 eval_episodes=4, progress=False, plots=True)
+    s = train(job, log=lambda *_: None)
+    assert s["episodes"] >= 6 and s["gradient_steps"] > 0
+    assert (tmp_path / "drl.pt").exists() and (tmp_path / "reward.png").exists()
+    assert set(s["evaluation"]["drl.pt"]) >= {"success", "collision", "timeout"}
+
+
+class _RandomQ(torch.nn.Module):
+    def forward(self, scans, *_):
+        return torch.rand(scans.shape[0], 15)
+
+
+def test_shipped_weights_beat_a_random_policy():
+    from stack.policies.drl.policy import WEIGHTS, load_network
+    from stack.train.drl import evaluate
+
+    torch.manual_seed(0)
+    trained = evaluate(load_network(WEIGHTS), stage=1, episodes=40, max_steps=300)
+    random = evaluate(_RandomQ(), stage=1, episodes=40, max_steps=300)
+    assert trained["success"] >= random["success"] + 0.3, (trained, random)
+    assert trained["collision"] < random["collision"]
+
+
+def test_default_policy_loads_the_shipped_weights():
+    from stack.policies.drl.policy import make_drl
+
+    p = make_drl(None, seed=3)
+    assert p.name == "drl" and p.hybrid
+    assert torch.get_num_threads() == 1
+    v, w = p.act(Observation(d_g=5.0, alpha_g=0.0, v=0.0, w=0.0, scans=np.full((1, 180), 5.0)))
+    assert v > 0 and abs(w) <= 0.5  # open space, goal straight ahead: drive toward it
