@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from stack.agents.decision import DecisionLayer, Neighbour, obstacle_distance
 from stack.estimation.pose import Pose
@@ -69,3 +70,14 @@ def test_obstacle_distance_ignores_beams_on_neighbours():
     d = obstacle_distance((0, 0), 0.0, scan, -math.pi / 2, ang[1] - ang[0], 5.0, [(2.0, 0.0)], 0.5)
     assert d == 2.5
     assert obstacle_distance((0, 0), 0.0, np.full(181, 5.0), -math.pi / 2, ang[1] - ang[0], 5.0, [], 0.5) == math.inf
+
+
+def test_observation_carries_the_neighbours_states_with_their_age():
+    """Policies that coordinate on states (Chang 2020's MRC) get them raw, world frame, with their age;
+    a robot beyond comm range is not in them."""
+    peer = DecisionLayer(5, "peer", None, goal=(10.0, 0.0), radius=0.5, comm_range=10.0, scan_range=5.0, dt=0.1)
+    near = Neighbour(1, "peer", 3.0, 4.0, 0.5, 0.8, 0.1, stamp=1.5, seq=3)
+    far = Neighbour(2, "peer", 30.0, 0.0, 0.0, 0.5, 0.0, stamp=2.0, seq=1)
+    dec = peer.decide(Pose(0.0, 0.0, 0.0, 0.0, 0.0), 2.0, {1: near, 2: far}, np.full((1, 180), 5.0), 5.0)
+    assert dec.obs.neighbour_states.shape == (1, 6)
+    assert dec.obs.neighbour_states[0] == pytest.approx([3.0, 4.0, 0.5, 0.8, 0.1, 0.5])

@@ -107,12 +107,15 @@ class DecisionLayer:
         d_rmax = max(dists, default=0.0)
         rel = sorted(((d, _polar(me, pose.yaw, o)[1]) for d, o in zip(dists, others) if d <= self.comm_range), reverse=True)
         nb = np.array(rel, dtype=float).reshape(-1, 2)
+        states = np.array([(n.x, n.y, n.yaw, n.v, n.w, max(0.0, now - n.stamp)) for n, d in zip(neighbours.values(), dists)
+                           if d <= self.comm_range], dtype=float).reshape(-1, 6)
 
         def obs(target, alpha=None, gvel=(0.0, 0.0), target_yaw=None) -> Observation:
             d_g, a_g = _polar(me, pose.yaw, target)
             return Observation(d_g=d_g, alpha_g=a_g if alpha is None else alpha, v=pose.v, w=pose.w, neighbours=nb,
                                scans=scans, goal_velocity=gvel, yaw=pose.yaw, scan_range=self.scan_range, dt=self.dt,
-                               target_yaw=target_yaw, x=pose.x, y=pose.y, target=(float(target[0]), float(target[1])))
+                               target_yaw=target_yaw, x=pose.x, y=pose.y, target=(float(target[0]), float(target[1])),
+                               neighbour_states=states)
 
         f = self.formation
         if f is None:  # arrival-time peer: straight to its own goal

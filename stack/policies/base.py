@@ -42,6 +42,9 @@ class Observation:
     x: float = 0.0  # the robot's own estimated position [m, world frame] (planners that keep a map need it)
     y: float = 0.0
     target: tuple[float, float] | None = None  # the target [m, world frame]: the goal, or a follower's slot
+    neighbour_states: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
+    """(n, 6) rows [x, y, yaw, v, w, age]: the states the robots in comm range last broadcast (world frame;
+    age [s] since they were stamped), for policies that coordinate on them (Chang 2020's MRC)."""
 
 
 class Policy(ABC):
