@@ -113,11 +113,12 @@ def test_bench_runs_each_scenario_with_its_policies(tmp_path):
     proc = run_cli(["stack-fleet", "bench", "--scenarios", str(folder), "--out", str(tmp_path / "bench")], timeout=300)
     assert proc.returncode in (0, 1), proc.stderr
     table = (tmp_path / "bench" / "bench.md").read_text()
-    assert "| test-diamond | pid |" in table and "Bai 2022 Fig. 9b" in table
+    assert "| test-diamond | pid |" in table and "| test-diamond | drl |" in table and "Bai 2022 Fig. 9b" in table
     data = json.loads((tmp_path / "bench" / "bench.json").read_text())
-    assert [r["policy"] for r in data["runs"]] == ["pid"]
-    assert data["skipped"] == [["test-diamond", "drl"]]
-    assert json.loads((tmp_path / "bench" / "test-diamond-pid" / "report.json").read_text())["policies"]["0"] == "pid"
+    assert [r["policy"] for r in data["runs"]] == ["pid", "drl"]  # every policy of the contract exists now
+    assert data["skipped"] == []
+    for pol in ("pid", "drl"):
+        assert json.loads((tmp_path / "bench" / f"test-diamond-{pol}" / "report.json").read_text())["policies"]["0"] == pol
 
 
 def test_noisy_sensors_with_fixes_keep_the_estimate_close(tmp_path):
