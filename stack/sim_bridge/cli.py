@@ -24,12 +24,6 @@ def main(cfg: WorldConfig) -> int:
         server = WorldServer(cfg, session)
         try:
             result = server.run()
-        except TimeoutError as e:
-            print(f"world: {e}", file=sys.stderr)
-            return 1
-        except DeviceError as e:
-            print(f"world: {e}", file=sys.stderr)
-            return 2
         except KeyboardInterrupt:
             return 0
     server.write_result(result)
@@ -71,12 +65,10 @@ def cli(argv: list[str] | None = None) -> int:
                       device_faults=a.device_fault, faults=[(kind, rid, t) for kind in FAULT_KINDS for rid, t in getattr(a, kind)])
     try:
         return main(cfg)
-    except ConfigFileError as e:
-        print(f"stack-world: {e}", file=sys.stderr)
-        return 2
-    except SessionError as e:
-        print(f"stack-world: {e}", file=sys.stderr)
-        return 1
+    except (ConfigFileError, DeviceError, SessionError, TimeoutError) as e:
+        # one line; bad input (a config file, a device the world cannot host) is 2, the rest 1
+        print(f"world: {e}", file=sys.stderr)
+        return 2 if isinstance(e, (ConfigFileError, DeviceError)) else 1
 
 
 def _fault_at(text: str) -> tuple[int, float]:
