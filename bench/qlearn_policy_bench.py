@@ -27,6 +27,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from stack.planning.qlearning import QLearningConfig, plan  # noqa: E402
+from stack.train.drlworld import ray_cast  # noqa: E402
 from stack.policies.base import Observation  # noqa: E402
 from stack.policies.qlearn import QlearnPolicy, QlearnPolicyConfig  # noqa: E402
 from stack.scenario import load_scenario  # noqa: E402
@@ -48,17 +49,9 @@ def circles_of(scenario: Path) -> list[tuple[float, float, float]]:
 
 
 def raycast(x: float, y: float, yaw: float, circles) -> np.ndarray:
-    d = np.column_stack([np.cos(yaw + REL), np.sin(yaw + REL)])
-    r = np.full(BEAMS, RANGE)
-    for cx, cy, R in circles:
-        oc = np.array([cx - x, cy - y])
-        b = d @ oc
-        disc = b * b - (oc @ oc - R * R)
-        ok = disc >= 0
-        t = b - np.sqrt(np.where(ok, disc, 0.0))
-        ok &= t > 0
-        r = np.where(ok, np.minimum(r, t), r)
-    return r
+    """Ranges of a 180-beam, 180-degree, 5 m lidar at (x, y, yaw) against circles (cx, cy, R)."""
+    c = np.asarray(circles, float).reshape(-1, 3)
+    return ray_cast(np.float64(x), np.float64(y), np.float64(yaw), c, np.zeros((0, 5)), REL, 0.0, RANGE)
 
 
 def observe(x, y, yaw, target, scan, neighbours=(), gv=(0.0, 0.0)) -> Observation:

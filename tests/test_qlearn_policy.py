@@ -14,6 +14,7 @@ from stack.planning.tracking import tracking_cost
 from stack.policies.base import Observation
 from stack.policies.qlearn import (QlearnPolicy, QlearnPolicyConfig, Polyline, dilate, gpf_choice, make_qlearn,
                                    reachable, string_pull)
+from stack.train.drlworld import ray_cast
 from stack.scenario import ScenarioError, load_scenario, parse_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -25,18 +26,8 @@ REL = np.linspace(-FOV / 2, FOV / 2, BEAMS)
 
 def raycast(x: float, y: float, yaw: float, circles) -> np.ndarray:
     """Ranges of a 180-beam, 180-degree, 5 m lidar at (x, y, yaw) against circles (cx, cy, R)."""
-    ang = yaw + REL
-    d = np.column_stack([np.cos(ang), np.sin(ang)])
-    r = np.full(BEAMS, RANGE)
-    for cx, cy, R in circles:
-        oc = np.array([cx - x, cy - y])
-        b = d @ oc
-        disc = b * b - (oc @ oc - R * R)
-        ok = disc >= 0
-        t = b - np.sqrt(np.where(ok, disc, 0.0))
-        ok &= t > 0
-        r = np.where(ok, np.minimum(r, t), r)
-    return r
+    c = np.asarray(circles, float).reshape(-1, 3)
+    return ray_cast(np.float64(x), np.float64(y), np.float64(yaw), c, np.zeros((0, 5)), REL, 0.0, RANGE)
 
 
 def observe(x, y, yaw, target, scan, neighbours=(), goal_velocity=(0.0, 0.0), dt=0.1) -> Observation:

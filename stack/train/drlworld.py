@@ -70,6 +70,10 @@ def ray_cast(x, y, yaw, circles, boxes, beam_angles, r0: float, scan_range: floa
     a = yaw[..., None] + beam_angles  # (..., B)
     dx, dy = np.cos(a)[..., None], np.sin(a)[..., None]  # (..., B, 1)
     best = np.full(a.shape, float(scan_range))
+    if circles.shape[-2] == 0 and boxes.shape[-2] == 0:
+        return best
+    circles = circles if circles.shape[-2] else np.zeros(circles.shape[:-2] + (1, 3))  # a point: hits nothing
+    boxes = boxes if boxes.shape[-2] else np.zeros(boxes.shape[:-2] + (1, 5))  # hx = 0: hits nothing
     # circles: |o + t d - c| = r  ->  t = -b -+ sqrt(b^2 - (|o - c|^2 - r^2))
     ox = (x[..., None] - circles[..., 0])[..., None, :]  # (..., 1, M)
     oy = (y[..., None] - circles[..., 1])[..., None, :]
