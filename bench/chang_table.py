@@ -42,16 +42,19 @@ def _csv(kind):
     return lambda s: [kind(x) for x in s.split(",") if x]
 
 
-def fleet_run(scenario: Path, coord: str, seed: int, loss: float, out: Path, env: dict) -> dict:
+def fleet_run(scenario: Path, coord: str, seed: int, loss: float, out: Path, env: dict, fuzzy: dict | None = None) -> dict:
     policy = "fuzzy-lstm" if coord == "lstm" else "fuzzy"
     e = dict(env)
-    if coord == "none":  # the same scenario, every robot without the coordinator
+    over = dict(fuzzy or {}) | ({"coordinator": "none"} if coord == "none" else {})
+    if over:  # the same scenario, every robot with these robot.fuzzy settings ("no MRC": coordinator none)
         import yaml
 
         raw = yaml.safe_load(scenario.read_text())
-        raw["robot"] = dict(raw.get("robot") or {}) | {"fuzzy": {"coordinator": "none"}}
+        robot = dict(raw.get("robot") or {})
+        robot["fuzzy"] = dict(robot.get("fuzzy") or {}) | over
+        raw["robot"] = robot
         out.mkdir(parents=True, exist_ok=True)
-        scenario = out / f"{scenario.stem}-no-mrc.yaml"
+        scenario = out / f"{scenario.stem}-{coord}.yaml"
         scenario.write_text(yaml.safe_dump(raw, sort_keys=False))
     exe = Path(sys.executable).with_name("stack-fleet")
     cmd = [str(exe), "run", str(scenario), "--policy", policy, "--seed", str(seed), "--loss", str(loss),
@@ -72,7 +75,7 @@ def fleet_run(scenario: Path, coord: str, seed: int, loss: float, out: Path, env
             "wall_s": round(wall, 1)}
 
 
-def numpy_run(scenario: Path, coord: str, seed: int, loss: float) -> dict:
+def numpy_run(scenario: Path, coord: str, seed: int, loss: float, fuzzy: dict | None = None) -> dict:
     from stack.policies.fuzzy import make_fuzzy
     from stack.scenario import load_scenario
     from stack.train.fuzzyworld import RobotSpec, SimConfig, World, run
@@ -84,17 +87,34 @@ def numpy_run(scenario: Path, coord: str, seed: int, loss: float) -> dict:
                     goal_tol=sc.success.goal_tolerance, max_steps=int(round(sc.duration / sc.dt)))
     t0 = time.perf_counter()
     res = run(World.from_scenario(sc), [RobotSpec(r.pose, r.goal) for r in sc.robots],
-              [make_fuzzy(r, coordinator=coord) for r in sc.robots], cfg, seed=seed)
+              [make_fuzzy(_with_fuzzy(r, fuzzy), coordinator=coord) for r in sc.robots], cfg, seed=seed)
     return {"spread": res.spread, "complete": res.complete, "collisions": res.collisions_robot + res.collisions_obstacle,
             "min_obstacle_m": round(res.min_obstacle, 3), "min_robot_m": round(res.min_robot, 3),
             "wall_s": round(time.perf_counter() - t0, 1)}
+
+
+def _with_fuzzy(robot, fuzzy: dict | None):
+    if not fuzzy:
+        return robot
+    import dataclasses
+
+    return dataclasses.replace(robot, fuzzy=dict(getattr(robot, "fuzzy", None) or {}) | fuzzy)
+
+
+def _setting(s: str) -> tuple[str, object]:
+    import yaml
+
+    k, sep, v = s.partition("=")
+    if not sep or not k:
+        raise argparse.ArgumentTypeError(f"--fuzzy {s!r}: expected KEY=VALUE (a robot.fuzzy field)")
+    return k, yaml.safe_load(v)
 
 
 def _ms(xs):
     xs = [x for x in xs if x is not None]
     if not xs:
         return "-"
-    return f"{np.mean(xs):.1f} +- {np.std(xs):.1f}"
+    return f"{np.mean(xs):.1f} +- {np.std(xs):.1f}, median {np.median(xs):g}"
 
 
 def table(results: dict, seeds: int, backend: str) -> str:
@@ -124,8 +144,20 @@ def main(argv=None) -> int:
     ap.add_argument("--loss", type=_csv(float), default=[0.0, 0.1, 0.3])
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--out", type=Path, default=Path("runs/chang-table"))
+    ap.add_argument("--fuzzy", type=_setting, action="append", default=[], metavar="KEY=VALUE",
+                    help="a robot.fuzzy setting for every run, e.g. terminal_match=false peer_goals=false (ablations)")
+    ap.add_argument("--table-only", action="store_true", help="rewrite OUT/chang_table.md from OUT/chang_table.json, run nothing")
     a = ap.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
+    if a.table_only:
+        src = a.out / "chang_table.json"
+        if not src.exists():
+            ap.error(f"--table-only: {src} does not exist")
+        results = json.loads(src.read_text())
+        md = table(results, max(len(r) for r in results.values()), a.backend)
+        (a.out / "chang_table.md").write_text(md + "\n")
+        print(md)
+        return 0
     env = dict(os.environ)
     results: dict[str, list] = {}
     t0 = time.perf_counter()
@@ -137,14 +169,14 @@ def main(argv=None) -> int:
                 results[key] = []
                 for seed in range(a.seeds):
                     if a.backend == "fleet":
-                        r = fleet_run(ROOT / scen, coord, seed, loss, a.out / f"{name}-{coord}-loss{loss:g}-s{seed}", env)
+                        r = fleet_run(ROOT / scen, coord, seed, loss, a.out / f"{name}-{coord}-loss{loss:g}-s{seed}", env, dict(a.fuzzy))
                     else:
-                        r = numpy_run(ROOT / scen, coord, seed, loss)
+                        r = numpy_run(ROOT / scen, coord, seed, loss, dict(a.fuzzy))
                     r["seed"] = seed
                     results[key].append(r)
                     print(f"{key} seed {seed}: {r}", file=sys.stderr, flush=True)
                 (a.out / "chang_table.json").write_text(json.dumps(results, indent=1) + "\n")
-    md = table(results, a.seeds, a.backend) + f"\n\nwall time {time.perf_counter() - t0:.0f} s\n"
+    md = table(results, a.seeds, a.backend) + (f"\n\nrobot.fuzzy: {dict(a.fuzzy)}" if a.fuzzy else "") + f"\n\nwall time {time.perf_counter() - t0:.0f} s\n"
     (a.out / "chang_table.md").write_text(md)
     print(md)
     return 0

@@ -7,8 +7,12 @@ p99 < 2 ms). Then runs the weights greedily on the held-out scenes of the traini
 (:func:`stack.train.drl.evaluate`) and prints the success / collision / timeout rates (goal:
 stage 1, 200 episodes: success >= 95 %, collisions <= 2 %).
 
-    python bench/drl_bench.py
-    python bench/drl_bench.py --weights runs/drl-s1/drl.pt --episodes 200 --stage 1 2
+    python bench/drl_bench.py --walls 0 --stage 1 2              # the shipped weights, the paper's scenes
+    python bench/drl_bench.py --weights stack/policies/drl/weights/drl-stage1.pt --walls 0 --eval-seed 777
+    python bench/drl_bench.py --no-shield --episodes 0            # act latency of the network alone
+
+``act`` is timed with the action shield on (as ``--policy drl`` runs by default); the held-out
+evaluation is the network alone (the training world's greedy runs).
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from stack.policies.base import Observation  # noqa: E402
+from stack.policies.drl.config import DrlConfig  # noqa: E402
 from stack.policies.drl.policy import WEIGHTS, DrlPolicy  # noqa: E402
 from stack.train.drl import evaluate  # noqa: E402
 
@@ -52,24 +57,30 @@ def main(argv=None) -> int:
     ap.add_argument("--stage", type=int, nargs="+", default=[1], choices=(1, 2))
     ap.add_argument("--epsilon", type=float, default=0.0, help="random-action chance in the evaluation (default 0: greedy)")
     ap.add_argument("--feasible", action="store_true", help="also check by flood fill that every stage-1 held-out scene is solvable")
+    ap.add_argument("--walls", type=int, default=2, choices=range(0, 4), help="walls per held-out scene, 0..N (0: the paper's scenes)")
+    ap.add_argument("--robots", type=int, default=4, help="stage 2: robots per scene (default 4)")
+    ap.add_argument("--eval-seed", type=int, default=None, help="held-out seed (default: the training's HELD_OUT_SEED)")
+    ap.add_argument("--no-shield", action="store_true", help="time act without the action shield")
     ap.add_argument("--json", type=Path, help="also write the numbers here")
     a = ap.parse_args(argv)
-    policy = DrlPolicy(a.weights)  # sets torch threads to 1
-    out = {"weights": str(a.weights), "act": latency(policy, a.calls)}
+    from stack.train.drl import HELD_OUT_SEED
+
+    seed = HELD_OUT_SEED if a.eval_seed is None else a.eval_seed
+    policy = DrlPolicy(a.weights, cfg=DrlConfig(shield=not a.no_shield))  # sets torch threads to 1
+    out = {"weights": str(a.weights), "shield": not a.no_shield, "act": latency(policy, a.calls)}
     lat = out["act"]
-    print(f"act ({lat['calls']} calls, 1 thread): p50 {lat['p50_ms']:.3f} ms, p99 {lat['p99_ms']:.3f} ms, max {lat['max_ms']:.2f} ms")
+    print(f"act ({lat['calls']} calls, 1 thread, shield {'off' if a.no_shield else 'on'}): p50 {lat['p50_ms']:.3f} ms, p99 {lat['p99_ms']:.3f} ms, max {lat['max_ms']:.2f} ms")
     for st in a.stage:
         if a.episodes:
             t0 = time.perf_counter()
-            ev = evaluate(policy.net, stage=st, episodes=a.episodes, epsilon=a.epsilon)
+            ev = evaluate(policy.net, stage=st, episodes=a.episodes, epsilon=a.epsilon, max_walls=a.walls, robots=a.robots, seed=seed)
             out[f"stage{st}"] = ev
             print(f"held-out stage {st} ({ev['episodes']} episodes, seed {ev['seed']}): success {ev['success']:.1%}, "
                   f"collision {ev['collision']:.1%}, timeout {ev['timeout']:.1%} ({time.perf_counter() - t0:.0f} s)")
     if a.feasible:
-        from stack.train.drl import HELD_OUT_SEED
         from stack.train.drlworld import held_out_scenes, reachable
 
-        ok = [reachable(sc[0][0], sc[2][0], sc[3], sc[4]) for sc in held_out_scenes(a.episodes, 1, HELD_OUT_SEED)]
+        ok = [reachable(sc[0][0], sc[2][0], sc[3], sc[4]) for sc in held_out_scenes(a.episodes, 1, seed, a.walls)]
         out["feasible"] = int(sum(ok))
         print(f"stage-1 held-out scenes solvable (flood fill, clearance radius + 5 cm): {sum(ok)}/{len(ok)}")
     if a.json:

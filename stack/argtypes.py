@@ -6,14 +6,27 @@ import argparse
 import re
 
 
-def positive_int(text: str) -> int:
+def _number(text: str, kind: type, low: float, what: str):
+    """``text`` as ``kind`` (int or float), finite and >= ``low``; else one line naming ``what`` was expected."""
     try:
-        n = int(text)
+        x = kind(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return n
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if not (low <= x < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+    return x
+
+
+def positive_int(text: str) -> int:
+    return _number(text, int, 1, "a positive integer")
+
+
+def nonnegative_int(text: str) -> int:
+    return _number(text, int, 0, "an integer >= 0")
+
+
+def nonnegative_float(text: str) -> float:
+    return _number(text, float, 0.0, "a number >= 0")
 
 
 def fleet_name(text: str) -> str:

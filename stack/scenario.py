@@ -129,6 +129,7 @@ class RobotConfig:
     aina: AinaConfig = field(default_factory=AinaConfig)
     qlearn: dict[str, Any] = field(default_factory=dict)  # ``--policy qlearn`` settings (QlearnPolicyConfig fields)
     fuzzy: dict[str, Any] = field(default_factory=dict)  # ``--policy fuzzy|fuzzy-lstm`` settings (see _fuzzy_settings)
+    drl: dict[str, Any] = field(default_factory=dict)  # ``--policy drl`` settings (DrlConfig fields)
     goal: tuple[float, float] | None = None
     driver_params: dict[str, dict[str, Any]] = field(default_factory=dict)
 
@@ -341,7 +342,7 @@ def _kind(value: Any) -> str:
     return type(value).__name__
 
 
-_ROBOT_KEYS = {"radius", "v_max", "w_max", "lidar", "odom_noise", "imu_noise", "fix", "comm_range", "cmd_timeout", "base", "pid", "aina", "qlearn", "fuzzy", "policy", "driver"} | set(DRIVERS)
+_ROBOT_KEYS = {"radius", "v_max", "w_max", "lidar", "odom_noise", "imu_noise", "fix", "comm_range", "cmd_timeout", "base", "pid", "aina", "qlearn", "fuzzy", "drl", "policy", "driver"} | set(DRIVERS)
 
 
 def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict[str, Any]:
@@ -404,6 +405,8 @@ def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict
         out["pid"] = replace(prev, **vals)
     if "fuzzy" in d:
         out["fuzzy"] = dict(out.get("fuzzy", {})) | _fuzzy_settings(rd, d["fuzzy"], f"{path}.fuzzy")
+    if "drl" in d:
+        out["drl"] = dict(out.get("drl", {})) | _drl_settings(rd, d["drl"], f"{path}.drl")
     if "qlearn" in d:
         out["qlearn"] = dict(out.get("qlearn", {})) | _qlearn_settings(rd, d["qlearn"], f"{path}.qlearn")
     if "aina" in d:
@@ -471,6 +474,19 @@ def _fuzzy_settings(rd: _Reader, value: Any, path: str) -> dict[str, Any]:
     try:
         make_fuzzy(SimpleNamespace(fuzzy=m, lidar=LidarConfig(), v_max=1.0, radius=0.5))
     except (TypeError, ValueError, KeyError) as e:
+        raise rd.fail(path, str(e)) from None
+    return m
+
+
+def _drl_settings(rd: _Reader, value: Any, path: str) -> dict[str, Any]:
+    """``drl:`` (Bai 2022): the fields of ``DrlConfig`` (weights, shield, shield_horizon, shield_margin),
+    checked by building it (no torch import)."""
+    from .policies.drl.config import DrlConfig
+
+    m = dict(rd.mapping(value or {}, path, {f.name for f in fields(DrlConfig)}))
+    try:
+        DrlConfig(**m)
+    except (TypeError, ValueError) as e:
         raise rd.fail(path, str(e)) from None
     return m
 

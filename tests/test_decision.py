@@ -81,3 +81,13 @@ def test_observation_carries_the_neighbours_states_with_their_age():
     dec = peer.decide(Pose(0.0, 0.0, 0.0, 0.0, 0.0), 2.0, {1: near, 2: far}, np.full((1, 180), 5.0), 5.0)
     assert dec.obs.neighbour_states.shape == (1, 6)
     assert dec.obs.neighbour_states[0] == pytest.approx([3.0, 4.0, 0.5, 0.8, 0.1, 0.5])
+
+
+def test_observation_carries_what_each_peer_reported_of_its_own_goal():
+    """Arrival-time peers broadcast their distance to their own goal (State.d_goal); a sender that did not say is NaN."""
+    peer = DecisionLayer(5, "peer", None, goal=(10.0, 0.0), radius=0.5, comm_range=10.0, scan_range=5.0, dt=0.1)
+    said = Neighbour(1, "peer", 3.0, 4.0, 0.5, 0.8, 0.1, stamp=1.5, seq=3, d_goal=12.5)
+    silent = Neighbour(2, "peer", 1.0, 1.0, 0.0, 0.5, 0.0, stamp=2.0, seq=1)
+    dec = peer.decide(Pose(0.0, 0.0, 0.0, 0.0, 0.0), 2.0, {1: said, 2: silent}, np.full((1, 180), 5.0), 5.0)
+    assert dec.obs.neighbour_d_goal.shape == (2,)
+    assert dec.obs.neighbour_d_goal[0] == pytest.approx(12.5) and math.isnan(dec.obs.neighbour_d_goal[1])

@@ -16,7 +16,7 @@ from stack.policies.base import Observation  # noqa: E402
 from stack.policies.drl.network import DuelingQNet  # noqa: E402
 from stack.policies.drl.observation import ACTIONS, goal_features, neighbour_features, scan_features  # noqa: E402
 from stack.policies.drl.reward import reward  # noqa: E402
-from stack.train.drlworld import DrlWorld, ray_cast, scene_arrays  # noqa: E402
+from stack.train.drlworld import DrlWorld, WorldConfig, ray_cast, scene_arrays  # noqa: E402
 
 
 # --- observation, actions, reward ---------------------------------------------------------
@@ -157,6 +157,27 @@ def test_world_steps_like_the_unicycle_and_detects_collisions():
     assert 1.0 < w.x[1, 0] <= 1.1 and abs(w.y[0, 0]) < 1e-9  # stopped within the step that came within R_d
 
 
+def test_time_penalty_and_stall_end_a_standing_robots_episode():
+    """Our training additions: every step that does not arrive costs time_penalty, and a robot that has
+    moved less than stall_move in stall_steps ends its episode with -stall_penalty (the evaluation keeps both off)."""
+    r0, _, _ = reward(5.0, 5.0, math.inf, 3.0, np.zeros(2), np.zeros(2))
+    r1, _, _ = reward(5.0, 5.0, math.inf, 3.0, np.zeros(2), np.zeros(2), time_penalty=0.01)
+    ra, arrived, _ = reward(0.6, 0.4, math.inf, 3.0, np.zeros(2), np.zeros(2), time_penalty=0.01)
+    assert r0 == 0.0 and r1 == pytest.approx(-0.01) and arrived and ra == pytest.approx(20.0)
+    w = DrlWorld(2, 1, seed=0, cfg=WorldConfig(stall_steps=30, time_penalty=0.01))
+    w.circles[:] = [1e4, 1e4, 0.0]
+    w.boxes[:] = [1e4, 1e4, 0, 0, 0]
+    w.x[:], w.y[:], w.yaw[:], w.gx[:], w.gy[:] = 0.0, 0.0, 0.0, 20.0, 0.0
+    w.anchor[:] = 0.0
+    stand, drive = 2, 12  # (0, 0) and (1, 0)
+    for k in range(30):
+        r, arr, col, done, _ = w.step(np.array([[stand], [drive]]), ACTIONS)
+        if k < 29:
+            assert not done.any() and not w.stalled.any()
+    assert w.stalled[0, 0] and done[0] and r[0, 0] == pytest.approx(-1.01)
+    assert not w.stalled[1, 0] and w.active[1, 0] and not col.any()
+
+
 # --- training -------------------------------------------------------------------------------------
 def test_td_loss_decreases_and_a_short_run_writes_its_outputs(tmp_path):
     from stack.train.drl import DrlJob, Learner, Replay, pick, train
@@ -217,3 +238,54 @@ def test_default_policy_loads_the_shipped_weights():
     assert torch.get_num_threads() == 1
     v, w = p.act(Observation(d_g=5.0, alpha_g=0.0, v=0.0, w=0.0, scans=np.full((1, 180), 5.0)))
     assert v > 0 and abs(w) <= 0.5  # open space, goal straight ahead: drive toward it
+
+
+class _FixedQ(torch.nn.Module):
+    """Always prefers action ``best`` (then the others in index order)."""
+
+    def __init__(self, best: int):
+        super().__init__()
+        self.best = best
+
+    def forward(self, scans, *_):
+        q = -torch.arange(15, dtype=torch.float32).repeat(scans.shape[0], 1) * 0.01
+        q[:, self.best] = 1.0
+        return q
+
+
+def test_shield_masks_the_actions_that_would_hit_what_the_scan_sees():
+    from stack.policies.drl.config import DrlConfig
+    from stack.policies.drl.policy import DrlPolicy, Shield
+
+    sh = Shield(ACTIONS, radius=0.5, fov=math.pi, horizon=0.6, margin=0.1)
+    ahead = np.full(180, 5.0)
+    ahead[85:95] = 1.0  # a wall 1 m straight ahead
+    ok = sh.safe(ahead, 5.0)
+    assert not ok[ACTIONS[:, 0] == 1.0].any()  # 0.6 m at 1 m/s: within radius + margin of it
+    assert ok[ACTIONS[:, 0] == 0.0].all()  # standing and turning on the spot are always allowed
+    assert sh.safe(np.full(180, 5.0), 5.0).all()  # nothing in range: everything allowed
+    th = np.linspace(-math.pi / 2, math.pi / 2, 180)
+    wall = np.where(th > 0.2, np.minimum(0.55 / np.maximum(np.sin(th), 1e-6), 5.0), 5.0)  # a wall 0.55 m to the left
+    ok = sh.safe(wall, 5.0)
+    assert ok[12] and ok[10] and not ok[14]  # already near it: along it or away is allowed, into it is not
+    fast = 12  # (1, 0)
+    obs = Observation(d_g=5.0, alpha_g=0.0, v=1.0, w=0.0, scans=np.stack([ahead] * 3))
+    shielded = DrlPolicy(net=_FixedQ(fast), cfg=DrlConfig(shield=True))
+    v, w = shielded.act(obs)
+    assert v < 1.0 and shielded.masked == 1  # the network's choice is overruled, the best allowed one taken
+    alone = DrlPolicy(net=_FixedQ(fast), cfg=DrlConfig(shield=False))
+    assert alone.act(obs) == (1.0, 0.0) and alone.masked == 0
+
+
+def test_robot_drl_settings_reach_the_policy(tmp_path):
+    from stack.policies.drl.policy import WEIGHTS, make_drl
+    from stack.scenario import parse_scenario
+
+    d = scenario_dict()
+    d["robot"]["drl"] = {"shield": False, "weights": str(WEIGHTS)}
+    sc = parse_scenario(d, "s.yaml")
+    p = make_drl(sc.robots[0])
+    assert p.shield is None and p.cfg.weights == str(WEIGHTS)
+    d["robot"]["drl"] = {"shield_margin": 0.2}
+    p = make_drl(parse_scenario(d, "s.yaml").robots[1])
+    assert p.shield is not None and p.shield.clear == pytest.approx(sc.robots[1].radius + 0.2)

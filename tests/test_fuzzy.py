@@ -160,6 +160,31 @@ def test_decentralised_agents_agree_and_stale_peers_drop_out():
     assert co.n == 1 and co.alpha == 1.0  # alone: nothing to coordinate
 
 
+@pytest.mark.parametrize("kind", ["flc", "lstm"])
+def test_terminal_matching_inside_d_near_all_gives_every_robot_the_farthests_time_to_go(kind):
+    """Within d_near_all a nearer robot drives at most v_n d_i / d_n (so it arrives with the farthest);
+    outside it, or with terminal_match off, eq. (2) alone."""
+    p = load_params()
+
+    def core():
+        return FlcSr(TSK.from_dict(p["flc_sr"])) if kind == "flc" else LstmMrc(LstmWeights.from_dict(p["lstm"]))
+
+    c = Coordinator(core(), MrcConfig())
+    c.v = 0.8
+    co = c.step(6.0, [PeerEstimate(8.0, 0.8)])
+    assert co.rank == 1 and co.v == pytest.approx(max(0.2, min(c.v, 0.8 * 6.0 / 8.0)))
+    assert co.v <= 0.6 + 1e-9  # time to go 6 / v >= 8 / 0.8
+    off = Coordinator(core(), MrcConfig(terminal_match=False))
+    off.v = 0.8
+    assert off.step(6.0, [PeerEstimate(8.0, 0.8)]).v == pytest.approx(off.v)
+    far = Coordinator(core(), MrcConfig())
+    far.v = 0.8
+    assert far.step(16.0, [PeerEstimate(18.0, 0.8)]).v == pytest.approx(far.v)  # not every robot within 10 m
+    last = Coordinator(core(), MrcConfig())
+    last.v = 0.8
+    assert last.step(8.0, [PeerEstimate(6.0, 0.8)]).v == pytest.approx(last.v)  # the farthest is not capped
+
+
 def test_no_mrc_keeps_constant_speed():
     c = Coordinator(None, MrcConfig(v0=0.5))
     for _ in range(5):
@@ -244,9 +269,26 @@ def test_three_robots_arrive_together_in_the_numpy_world():
 def test_policy_uses_neighbour_states_when_the_observation_has_them():
     pol = make_fuzzy()
     obs = Observation(d_g=10.0, alpha_g=0.0, v=0, w=0, scans=np.full((1, 180), 5.0), x=0, y=0, target=(10, 0))
-    obs.neighbour_states = np.array([[40.0, 0.0, 0.0, 0.7, 0.0, 0.5]])  # x, y, yaw, v, w, age (proposed field)
+    obs.neighbour_states = np.array([[40.0, 0.0, 0.0, 0.7, 0.0, 0.5]])  # x, y, yaw, v, w, age
     pol.act(obs)
     assert pol.last.n == 2 and pol.last.rank == 1 and pol.last.inputs[3] == pytest.approx(0.7)
+
+
+def test_policy_ranks_by_the_distances_peers_report_to_their_own_goals():
+    """A peer 30 m from this robot's goal but 5 m from its own (reported, State.d_goal) is the nearest robot;
+    with ``peer_goals=False`` the same peer is ranked by its distance to this robot's goal (the farthest)."""
+    obs = Observation(d_g=10.0, alpha_g=0.0, v=0, w=0, scans=np.full((1, 180), 5.0), x=0, y=0, target=(10, 0),
+                      neighbour_states=np.array([[40.0, 0.0, 0.0, 0.5, 0.0, 0.0]]), neighbour_d_goal=np.array([5.0]))
+    pol = make_fuzzy()
+    pol.act(obs)
+    assert pol.last.n == 2 and pol.last.rank == 2  # this robot (10 m) is the farthest
+    assert pol.last.inputs[0] * pol.mrc.cfg.d_scale == pytest.approx(5.0)
+    old = FuzzyPolicy(FuzzyConfig(peer_goals=False))
+    old.act(obs)
+    assert old.last.rank == 1 and old.last.inputs[1] * old.mrc.cfg.d_scale == pytest.approx(30.0)
+    obs.neighbour_d_goal = np.array([math.nan])  # the peer did not say: its distance to this robot's goal
+    pol.act(obs)
+    assert pol.last.rank == 1
 
 
 def test_phase1_fitness_of_the_shipped_bf_controller_is_a_success():

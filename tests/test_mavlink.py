@@ -365,7 +365,7 @@ def test_close_leaves_the_rover_in_hold_disarmed_and_still(rig):
     assert wait_for(lambda: sim.body_velocity()[0] == pytest.approx(0.6), 1.0)
     t0 = time.monotonic()
     d.close()
-    assert time.monotonic() - t0 < 1.0
+    assert time.monotonic() - t0 < 2.5  # bounded (two ACKs, the threads' joins), with room for a loaded machine
     assert sim.mode == MODE_HOLD and not sim.armed and sim.target == (0.0, 0.0)
     assert wait_for(lambda: sim.body_velocity() == (0.0, 0.0), 1.0)
 

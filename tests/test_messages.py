@@ -21,6 +21,19 @@ def test_state_is_a_plain_msgpack_map_with_the_contract_fields():
     assert (m["id"], m["role"], m["x"]) == (2, "follower", 1.0)
 
 
+def test_state_d_goal_is_optional_and_checked():
+    """Arrival-time peers add d_goal (their distance to their own goal); older senders leave it out."""
+    s = decode(encode(State(id=1, role="peer", seq=1, stamp=0.0, x=0, y=0, yaw=0, v=0, w=0, d_goal=12.5)), State)
+    assert s.d_goal == 12.5
+    assert decode(encode(State(id=1, role="peer", seq=1, stamp=0.0, x=0, y=0, yaw=0, v=0, w=0)), State).d_goal is None
+    with pytest.raises(MessageError):
+        decode(msgpack.packb({"id": 1, "role": "peer", "seq": 1, "stamp": 0.0, "x": 0, "y": 0, "yaw": 0.0, "v": 0.0,
+                              "w": 0.0, "d_goal": math.inf}), State)
+    with pytest.raises(MessageError):
+        decode(msgpack.packb({"id": 1, "role": "peer", "seq": 1, "stamp": 0.0, "x": 0, "y": 0, "yaw": 0.0, "v": 0.0,
+                              "w": 0.0, "d_goal": -1.0}), State)
+
+
 def test_foreign_encoder_with_extra_fields_decodes():
     b = msgpack.packb({"id": 3, "role": "leader", "seq": 1, "stamp": 0.0, "x": 1, "y": 2, "yaw": 0.0, "v": 0.0,
                        "w": 0.0, "battery": 0.8})

@@ -448,7 +448,7 @@ class Agent:
             if old is not None and not self._plausible(old, m):
                 self.rejected_states += 1
                 continue
-            self.neighbours[m.id] = Neighbour(m.id, m.role, m.x, m.y, m.yaw, m.v, m.w, m.stamp, m.seq)
+            self.neighbours[m.id] = Neighbour(m.id, m.role, m.x, m.y, m.yaw, m.v, m.w, m.stamp, m.seq, m.d_goal)
         for nid in [i for i, n in self.neighbours.items() if now - n.stamp > STALE_AFTER_S]:
             del self.neighbours[nid]  # silent too long (frozen, or out of range): out of the formation logic,
             self.noticed[nid] = t_run  # and its body is an obstacle to the lidar like any other
@@ -472,7 +472,8 @@ class Agent:
         self.seq += 1
         st = State(id=self.id, role=self.role, seq=self.seq, stamp=self._stamp(), x=pose.x, y=pose.y, yaw=pose.yaw,
                    v=pose.v, w=pose.w, step=k, situation=dec.situation, wall=time.time(),
-                   cov_trace=ekf.cov_trace)
+                   cov_trace=ekf.cov_trace,
+                   d_goal=float(dec.obs.d_g) if dec.situation == "peer" and dec.obs is not None else None)
         self._state_pub.put(encode(st))
         self.sent += 1
         self.driver.command(v, w, step=k)
@@ -515,5 +516,6 @@ class Agent:
                  sensor_stale=self.sensor_stale,
                  fault=self.fault, noticed=dict(self.noticed), led_since=self.led_since,
                  rejected_states=self.rejected_states, neighbour_waits_timed_out=self.neighbour_waits_timed_out,
-                 device_odom_late=self.device_odom_late, scans_from_driver=self.scans_from_driver)
+                 device_odom_late=self.device_odom_late, scans_from_driver=self.scans_from_driver,
+                 shield_masked=getattr(self.policy, "masked", None))
         self._diag_pub.put(encode(d))

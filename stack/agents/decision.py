@@ -38,6 +38,7 @@ class Neighbour:
     w: float
     stamp: float  # sender's stamp
     seq: int
+    d_goal: float | None = None  # arrival-time peers: its distance to its own goal, as it reported
 
     def predicted(self, now: float, horizon: float = 1.0) -> tuple[float, float]:
         """Position extrapolated along the reported velocity, at most ``horizon`` seconds."""
@@ -109,13 +110,15 @@ class DecisionLayer:
         nb = np.array(rel, dtype=float).reshape(-1, 2)
         states = np.array([(n.x, n.y, n.yaw, n.v, n.w, max(0.0, now - n.stamp)) for n, d in zip(neighbours.values(), dists)
                            if d <= self.comm_range], dtype=float).reshape(-1, 6)
+        d_goals = np.array([math.nan if n.d_goal is None else n.d_goal for n, d in zip(neighbours.values(), dists)
+                            if d <= self.comm_range], dtype=float)
 
         def obs(target, alpha=None, gvel=(0.0, 0.0), target_yaw=None) -> Observation:
             d_g, a_g = _polar(me, pose.yaw, target)
             return Observation(d_g=d_g, alpha_g=a_g if alpha is None else alpha, v=pose.v, w=pose.w, neighbours=nb,
                                scans=scans, goal_velocity=gvel, yaw=pose.yaw, scan_range=self.scan_range, dt=self.dt,
                                target_yaw=target_yaw, x=pose.x, y=pose.y, target=(float(target[0]), float(target[1])),
-                               neighbour_states=states)
+                               neighbour_states=states, neighbour_d_goal=d_goals)
 
         f = self.formation
         if f is None:  # arrival-time peer: straight to its own goal

@@ -44,6 +44,12 @@ class State(_Msg):
     cov_trace: float | None = None
     situation: str | None = None
     wall: float | None = None  # sender's wall clock at sending (UNIX s), for latency measurement
+    d_goal: float | None = None  # arrival-time peers: the sender's distance to its own goal [m] (Chang 2020's D_goal)
+
+    def __post_init__(self) -> None:
+        _finite(self)
+        if self.d_goal is not None and self.d_goal < 0:
+            raise ValueError("d_goal must be >= 0")
 
 
 class CmdVel(_Msg):
@@ -201,6 +207,7 @@ class Diag(_Msg):
     neighbour_waits_timed_out: int = 0  # lock-step steps that went on without an awaited neighbour state
     device_odom_late: int = 0  # lock-step steps that went on without a new odometry sample from the device
     scans_from_driver: int = 0  # real time: scans the robot's own driver read (a Jackal's LaserScan)
+    shield_masked: int | None = None  # --policy drl: steps at which the action shield overruled the network
 
 
 _ENCODER = msgspec.msgpack.Encoder()

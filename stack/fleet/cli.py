@@ -9,7 +9,7 @@ import re
 import sys
 from pathlib import Path
 
-from ..argtypes import fleet_name, positive_int
+from ..argtypes import fleet_name, nonnegative_float, positive_int
 from ..comm.session import ConfigFileError, EndpointError, SessionConfig, SessionError, check_endpoint, port_free, zenoh_config
 from ..policies import available as available_policies
 from ..scenario import DRIVERS, FAULT_KINDS, POLICIES, ScenarioError, load_scenario, parse_fault_at, with_overrides
@@ -48,18 +48,8 @@ def _prob(text: str) -> float:
     return x
 
 
-def _nonneg(text: str) -> float:
-    try:
-        x = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
-    if not x >= 0:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
-    return x
-
-
 def _positive(text: str) -> float:
-    x = _nonneg(text)
+    x = nonnegative_float(text)
     if x == 0:
         raise argparse.ArgumentTypeError("expected a number > 0, got 0")
     return x
@@ -74,7 +64,7 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--policy", choices=POLICIES, help="override every robot's policy")
     r.add_argument("--driver", choices=DRIVERS, help="override every robot's driver")
     r.add_argument("--loss", type=_prob, help="override comm.loss")
-    r.add_argument("--latency-ms", type=_nonneg, help="override comm.latency_ms")
+    r.add_argument("--latency-ms", type=nonnegative_float, help="override comm.latency_ms")
     r.add_argument("--seed", type=int, help="override the seed of every random source")
     r.add_argument("--duration", type=_positive, help="override the duration [s]")
     r.add_argument("--realtime", action="store_true", help="run on the wall clock (default: lock-step, as fast as agents answer)")

@@ -158,6 +158,7 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
             "neighbour_waits_timed_out": d.neighbour_waits_timed_out if d is not None else None,
             "device_odom_late": d.device_odom_late if d is not None else None,
             "scans_from_driver": d.scans_from_driver if d is not None else None,
+            "shield_masked": d.shield_masked if d is not None else None,
             "led_since_s": d.led_since if d is not None else None,
             "alive_at_end": bool(alive[-1, j]),
         }

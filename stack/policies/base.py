@@ -45,6 +45,9 @@ class Observation:
     neighbour_states: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
     """(n, 6) rows [x, y, yaw, v, w, age]: the states the robots in comm range last broadcast (world frame;
     age [s] since they were stamped), for policies that coordinate on them (Chang 2020's MRC)."""
+    neighbour_d_goal: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    """(n,) beside ``neighbour_states``: each one's distance to its own goal as it reported it [m] (arrival-time
+    peers; NaN where the sender did not say)."""
 
 
 class Policy(ABC):

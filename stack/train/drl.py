@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..argtypes import positive_int
+from ..argtypes import nonnegative_float, nonnegative_int, positive_int
 from . import InputError
 
 HELD_OUT_SEED = 20261
@@ -60,6 +60,10 @@ class DrlJob:
     huber: bool = True  # Huber instead of the squared TD error of Algorithm 1
     grad_clip: float = 10.0
     max_steps: int = 500  # Table I max-step
+    time_penalty: float = 0.0  # ours: reward per step that does not arrive is lowered by this (0: eq. 14-17)
+    stall_steps: int = 0  # ours: standing (moving < 0.1 m) this many steps ends the episode with -1 (0: off)
+    robots: int = 4  # stage 2: robots per scene (the paper: four)
+    max_walls: int = 2  # walls across the way per scene, 0..max_walls (0: the paper's cuboids and cylinders)
     seed: int = 0
     init: Path | None = None
     max_minutes: float | None = None
@@ -209,7 +213,7 @@ class NStep:
 
 # --- evaluation ------------------------------------------------------------------------------------
 def evaluate(net, *, stage: int = 1, episodes: int = 200, seed: int = HELD_OUT_SEED, max_steps: int = 500,
-             epsilon: float = 0.0) -> dict:
+             epsilon: float = 0.0, max_walls: int = 2, robots: int = 4) -> dict:
     """Greedy run of ``net`` on the held-out scenes: success / collision / timeout rates.
 
     Stage 1: one robot per scene. Stage 2: all four robots drive with ``net``; a scene succeeds
@@ -221,8 +225,8 @@ def evaluate(net, *, stage: int = 1, episodes: int = 200, seed: int = HELD_OUT_S
 
     from .drlworld import DrlWorld, WorldConfig, held_out_scenes
 
-    scenes = held_out_scenes(episodes, stage, seed)
-    w = DrlWorld(episodes, stage, seed=seed + 1, cfg=WorldConfig(max_steps=max_steps))
+    scenes = held_out_scenes(episodes, stage, seed, max_walls, robots)
+    w = DrlWorld(episodes, stage, seed=seed + 1, cfg=WorldConfig(max_steps=max_steps, max_walls=max_walls, robots=robots))
     w.reset(np.ones(episodes, bool), scenes)
     arrived = np.zeros((episodes, w.R), bool)
     collided = np.zeros((episodes, w.R), bool)
@@ -243,7 +247,7 @@ def evaluate(net, *, stage: int = 1, episodes: int = 200, seed: int = HELD_OUT_S
         steps[live] = t + 1
     succ = arrived.all(axis=1) & ~collided.any(axis=1)
     coll = collided.any(axis=1)
-    return {"episodes": episodes, "stage": stage, "seed": seed, "epsilon": epsilon, "success": float(succ.mean()), "collision": float(coll.mean()),
+    return {"episodes": episodes, "stage": stage, "seed": seed, "epsilon": epsilon, "max_walls": max_walls, "robots": w.R, "success": float(succ.mean()), "collision": float(coll.mean()),
             "timeout": float((~succ & ~coll).mean()), "mean_steps_success": float(steps[succ].mean()) if succ.any() else None}
 
 
@@ -266,7 +270,9 @@ def train(job: DrlJob, log=print) -> dict:
     L = Learner(job, net)
     frozen = DuelingQNet()  # theta~ of the other robots (stage 2)
     frozen.load_state_dict(net.state_dict())
-    world = DrlWorld(job.envs, job.stage, seed=job.seed, cfg=WorldConfig(max_steps=job.max_steps))
+    world = DrlWorld(job.envs, job.stage, seed=job.seed, cfg=WorldConfig(max_steps=job.max_steps, time_penalty=job.time_penalty,
+                                                                 stall_steps=job.stall_steps, max_walls=job.max_walls,
+                                                                 robots=job.robots))
     N, R = world.N, world.R
     D = Replay(job.memory, world.cfg.beams, R - 1, rng)
     rows = np.arange(N)
@@ -307,7 +313,7 @@ def train(job: DrlJob, log=print) -> dict:
         actions[rows, tr] = a_tr
         r, arrived, collided, done, timeout = world.step(actions, ACTIONS)
         obs2 = world.observe()
-        term = (arrived[rows, tr] | collided[rows, tr]).astype(np.float32)
+        term = (arrived[rows, tr] | collided[rows, tr] | world.stalled[rows, tr]).astype(np.float32)
         o2 = pick(obs2, rows, tr)
         nstep.push(o, a_tr, r[rows, tr], o2, term, done)
         ep_return += r[rows, tr]
@@ -315,7 +321,8 @@ def train(job: DrlJob, log=print) -> dict:
         since_copy += N
         for n in np.nonzero(done)[0]:
             episode += 1
-            outcome = "arrived" if arrived[n, tr[n]] else "collided" if collided[n, tr[n]] else "timeout"
+            outcome = ("arrived" if arrived[n, tr[n]] else "collided" if collided[n, tr[n]]
+                       else "stalled" if world.stalled[n, tr[n]] else "timeout")
             curve.append({"episode": episode, "return": round(float(ep_return[n]), 3), "outcome": outcome,
                           "steps": int(world.t[n]), "epsilon": round(eps, 4)})
         if done.any():
@@ -353,11 +360,11 @@ def train(job: DrlJob, log=print) -> dict:
     log(f"{episode} episodes, {steps} env steps in {wall:.0f} s ({steps / wall:.0f} env steps/s), {L.steps} gradient steps")
     ev = None
     if job.eval_episodes:
-        ev = {"drl.pt": evaluate(L.q, stage=job.stage, episodes=job.eval_episodes, max_steps=job.max_steps)}
+        ev = {"drl.pt": evaluate(L.q, stage=job.stage, episodes=job.eval_episodes, max_steps=job.max_steps, max_walls=job.max_walls, robots=job.robots)}
         if (job.out / "best.pt").exists():
             b = DuelingQNet()
             b.load_state_dict(torch.load(job.out / "best.pt", weights_only=True))
-            ev["best.pt"] = evaluate(b, stage=job.stage, episodes=job.eval_episodes, max_steps=job.max_steps)
+            ev["best.pt"] = evaluate(b, stage=job.stage, episodes=job.eval_episodes, max_steps=job.max_steps, max_walls=job.max_walls, robots=job.robots)
         for k, v in ev.items():
             log(f"held-out {k}: success {v['success']:.3f}, collision {v['collision']:.3f}, timeout {v['timeout']:.3f}")
     summary = _write_json(job, curve, losses, steps, wall, ev)
@@ -419,12 +426,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--n-step", type=positive_int, default=1, help="n-step returns (default 1: eq. 18)")
     p.add_argument("--mse", action="store_true", help="squared TD error (Algorithm 1) instead of Huber")
     p.add_argument("--max-steps", type=positive_int, default=j.max_steps, help="max-step per episode (default 500)")
+    p.add_argument("--time-penalty", type=nonnegative_float, default=0.0,
+                   help="subtract this from every step's reward until arrival (default 0: eq. 14-17 as printed)")
+    p.add_argument("--stall-steps", type=nonnegative_int, default=0,
+                   help="end an episode with -1 when the robot has moved < 0.1 m in this many steps (default 0: off)")
+    p.add_argument("--walls", type=int, choices=range(0, 4), default=2, metavar="N",
+                   help="walls (2-10 m, across the way) per training / held-out scene, 0..N (default 2; 0: the paper's "
+                        "randomly scattered cuboids and cylinders)")
+    p.add_argument("--robots", type=int, choices=range(2, 9), default=4, metavar="N",
+                   help="stage 2: robots per scene, 2..8 (default 4, the paper's)")
     p.add_argument("--max-minutes", type=float, help="stop (and save, and evaluate) after this wall time")
     p.add_argument("--stop-after", type=positive_int, metavar="EPISODES",
                    help="stop after this many episodes (the epsilon schedule still spans --episodes): replays a run cut by --max-minutes")
     p.add_argument("--checkpoint-minutes", type=float, default=j.checkpoint_minutes, help="write drl.pt this often")
     p.add_argument("--eval-episodes", type=int, default=j.eval_episodes, help="held-out episodes at the end (0: none)")
     p.add_argument("--evaluate", type=Path, metavar="WEIGHTS", help="only evaluate these weights on the held-out scenes")
+    p.add_argument("--eval-seed", type=int, default=HELD_OUT_SEED,
+                   help=f"the held-out scenes' seed (default {HELD_OUT_SEED}; another one: a fresh set nobody chose weights on)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=positive_int, default=1, help="torch threads (default 1)")
     p.add_argument("--no-plots", action="store_true")
@@ -442,14 +460,16 @@ def main(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
         net = DuelingQNet()
         net.load_state_dict(torch.load(args.evaluate, map_location="cpu", weights_only=True))
-        print(json.dumps(evaluate(net, stage=args.stage, episodes=args.eval_episodes or 200, max_steps=args.max_steps)))
+        print(json.dumps(evaluate(net, stage=args.stage, episodes=args.eval_episodes or 200, max_steps=args.max_steps,
+                                         max_walls=args.walls, robots=args.robots, seed=args.eval_seed)))
         return 0
     if args.init is not None and not args.init.exists():
         raise InputError(f"{args.init}: no such weights file")
     job = DrlJob(stage=args.stage, out=args.out, init=args.init, episodes=args.episodes or (5000 if args.stage == 1 else 10000),
                  envs=args.envs, batch=args.batch, memory=args.memory, lr=args.lr, gamma=args.gamma, target_every=args.target_every,
                  copy_every=args.copy_every, eps_start=args.eps_start, eps_end=args.eps_end, eps_fraction=args.eps_fraction,
-                 updates_per_step=args.updates_per_step, n_step=args.n_step, huber=not args.mse, max_steps=args.max_steps, seed=args.seed,
+                 updates_per_step=args.updates_per_step, n_step=args.n_step, huber=not args.mse, max_steps=args.max_steps, time_penalty=args.time_penalty,
+                 stall_steps=args.stall_steps, max_walls=args.walls, robots=args.robots, seed=args.seed,
                  max_minutes=args.max_minutes, stop_after=args.stop_after, checkpoint_minutes=args.checkpoint_minutes, eval_episodes=args.eval_episodes,
                  threads=args.threads, progress=not args.no_progress, plots=not args.no_plots)
     train(job)

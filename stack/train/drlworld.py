@@ -45,6 +45,13 @@ class WorldConfig:
     wheel_accel: float = 30.0
     max_circles: int = 10
     max_boxes: int = 9
+    robots: int = 4  # stage 2: robots per scene (the paper: four)
+    max_walls: int = 2  # walls (2-10 m long thin boxes, across the way) per scene: 0..max_walls (0: the paper's
+    # "randomly scattered" cuboids and cylinders only)
+    time_penalty: float = 0.0  # per step, see stack.policies.drl.reward (0: the paper's reward)
+    stall_steps: int = 0  # training only: a robot that has moved less than stall_move in this many steps ends its
+    stall_move: float = 0.1  # episode with -stall_penalty, like a collision (0: off, the paper's episodes)
+    stall_penalty: float = 1.0
 
 
 def scene_arrays(obstacles, max_circles: int | None = None, max_boxes: int | None = None):
@@ -145,7 +152,7 @@ class DrlWorld:
     def __init__(self, n_envs: int, stage: int = 1, *, seed: int = 0, cfg: WorldConfig | None = None):
         self.cfg = cfg or WorldConfig()
         self.N, self.stage = n_envs, stage
-        self.R = 1 if stage == 1 else 4
+        self.R = 1 if stage == 1 else self.cfg.robots
         self.rng = np.random.default_rng(seed)
         N, R, c = self.N, self.R, self.cfg
         self.beam_angles = np.linspace(-c.fov / 2, c.fov / 2, c.beams)
@@ -154,6 +161,8 @@ class DrlWorld:
         self.gx, self.gy, self.d_prev = z(), z(), z()
         self.a_prev = np.zeros((N, R, 2))
         self.active = np.ones((N, R), bool)
+        self.anchor = np.zeros((N, R, 3))  # x, y, step where each robot last moved stall_move (stall_steps)
+        self.stalled = np.zeros((N, R), bool)  # this step ended a robot's episode by standing still
         self.circles = np.zeros((N, c.max_circles, 3))
         self.boxes = np.zeros((N, c.max_boxes, 5))
         self.scans = np.zeros((N, R, N_SCANS, c.beams), np.float32)  # normalised, newest last
@@ -168,7 +177,7 @@ class DrlWorld:
         keep = np.vstack([starts, goals])
         lo, hi = keep.min(0) - 4.0, keep.max(0) + 4.0
         circles, boxes = [], []
-        n_c, n_b, n_w = rng.integers(1, c.max_circles - 2), rng.integers(1, c.max_boxes - 3), rng.integers(0, 3)
+        n_c, n_b, n_w = rng.integers(1, c.max_circles - 2), rng.integers(1, c.max_boxes - 3), rng.integers(0, c.max_walls + 1)
         on_path = rng.random() < 0.5  # one obstacle across a robot's straight path
         tries = 0
         while (len(circles) < n_c or len(boxes) < n_b + n_w) and tries < 200:
@@ -233,6 +242,8 @@ class DrlWorld:
         for a in (self.wl, self.wr, self.v, self.w):
             a[idx] = 0.0
         self.a_prev[idx] = 0.0
+        self.anchor[idx] = np.stack([self.x[idx], self.y[idx], np.zeros_like(self.x[idx])], -1)
+        self.stalled[idx] = False
         self.active[idx] = True
         self.t[idx] = 0
         self.d_prev[idx] = np.hypot(self.gx[idx] - self.x[idx], self.gy[idx] - self.y[idx])
@@ -316,11 +327,18 @@ class DrlWorld:
         d_now = np.hypot(self.gx - self.x, self.gy - self.y)
         d_rob = self._robot_distances().min(axis=2) if self.R > 1 else np.full((self.N, 1), np.inf)
         d_obs = obstacle_distance(self.x, self.y, self.circles[:, None], self.boxes[:, None])
-        r, arrived, collided = reward(self.d_prev, d_now, d_rob, d_obs, self.a_prev, a, c.radius)
+        r, arrived, collided = reward(self.d_prev, d_now, d_rob, d_obs, self.a_prev, a, c.radius, c.time_penalty)
         r = np.where(self.active, r, 0.0)
         arrived &= self.active
         collided &= self.active & ~arrived
         self.active &= ~(arrived | collided)
+        self.stalled[:] = False
+        if c.stall_steps:  # training only: standing (or turning on the spot) for stall_steps ends the episode
+            moved = np.hypot(self.x - self.anchor[..., 0], self.y - self.anchor[..., 1]) > c.stall_move
+            self.anchor[moved] = np.stack([self.x[moved], self.y[moved], np.broadcast_to(self.t[:, None], moved.shape)[moved]], -1)
+            self.stalled = self.active & (self.t[:, None] - self.anchor[..., 2] >= c.stall_steps)
+            r = np.where(self.stalled, r - c.stall_penalty, r)
+            self.active &= ~self.stalled
         self.d_prev, self.a_prev = d_now, a
         self.scans = np.concatenate([self.scans[:, :, 1:], self._lidar(np.arange(self.N))[:, :, None]], axis=2)
         tr = self.trained
@@ -329,9 +347,10 @@ class DrlWorld:
         return r, arrived, collided, done_tr | timeout, timeout
 
 
-def held_out_scenes(n: int, stage: int = 1, seed: int = 20260 + 1) -> list:
-    """A fixed set of scenes (the held-out evaluation set; training seeds never reach this one's stream)."""
+def held_out_scenes(n: int, stage: int = 1, seed: int = 20260 + 1, max_walls: int = 2, robots: int = 4) -> list:
+    """A fixed set of scenes (the held-out evaluation set; training seeds never reach this one's stream).
+    ``max_walls`` 0: the paper's scenes (cuboids and cylinders randomly scattered, section V-A)."""
     w = DrlWorld.__new__(DrlWorld)
-    w.cfg, w.R = WorldConfig(), 1 if stage == 1 else 4
+    w.cfg, w.R = WorldConfig(max_walls=max_walls, robots=robots), 1 if stage == 1 else robots
     rng = np.random.default_rng([seed, stage])
     return [w._scene(rng) for _ in range(n)]

@@ -155,13 +155,14 @@ def run(world: World, robots: list[RobotSpec], policies: list, cfg: SimConfig | 
             scan = ray_cast(st[i, 0], st[i, 1], st[i, 2] + rel, world.segs, circ, cfg.range_max)
             if cfg.noise_std > 0:
                 scan = np.clip(scan + rng.normal(0, cfg.noise_std, scan.shape), 0.0, cfg.range_max)
-            nbs = []
+            nbs, states, d_goals = [], [], []
             for j in range(n):
                 if j == i:
                     continue
                 d = math.hypot(st[j, 0] - st[i, 0], st[j, 1] - st[i, 1])
                 if d <= cfg.comm_range and rng.random() >= cfg.loss:
-                    last_heard[i][j] = (st[j, 0], st[j, 1], st[j, 2], vw[j, 0], k)
+                    last_heard[i][j] = (st[j, 0], st[j, 1], st[j, 2], vw[j, 0], k, vw[j, 1],
+                                        math.hypot(goals[j, 0] - st[j, 0], goals[j, 1] - st[j, 1]))
                 h = last_heard[i][j]
                 if h is None or (k - h[4]) * cfg.dt > 3.0:
                     continue
@@ -169,13 +170,16 @@ def run(world: World, robots: list[RobotSpec], policies: list, cfg: SimConfig | 
                 hx, hy = h[0] + h[3] * math.cos(h[2]) * age, h[1] + h[3] * math.sin(h[2]) * age
                 dd = math.hypot(hx - st[i, 0], hy - st[i, 1])
                 nbs.append((dd, _wrap(math.atan2(hy - st[i, 1], hx - st[i, 0]) - st[i, 2])))
+                states.append((h[0], h[1], h[2], h[3], h[5], (k - h[4]) * cfg.dt))  # as the agent's DecisionLayer
+                d_goals.append(h[6])
             nbs.sort(reverse=True)
             gx, gy = goals[i]
             obs = Observation(d_g=math.hypot(gx - st[i, 0], gy - st[i, 1]),
                               alpha_g=_wrap(math.atan2(gy - st[i, 1], gx - st[i, 0]) - st[i, 2]),
                               v=vw[i, 0], w=vw[i, 1], neighbours=np.array(nbs, float).reshape(-1, 2),
                               scans=scan[None, :], yaw=st[i, 2], scan_range=cfg.range_max, dt=cfg.dt,
-                              x=st[i, 0], y=st[i, 1], target=(gx, gy))
+                              x=st[i, 0], y=st[i, 1], target=(gx, gy),
+                              neighbour_states=np.array(states, float).reshape(-1, 6), neighbour_d_goal=np.array(d_goals, float))
             v, w = policies[i].act(obs)
             vw[i] = (min(max(v, 0.0), cfg.v_max), min(max(w, -cfg.w_max), cfg.w_max))
         # integrate (exact arc)

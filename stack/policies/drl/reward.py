@@ -6,6 +6,9 @@
                = -0.3  else if |p_t - p~_t| < 3 R_d or |p_t - B_k| < 2 R_d
                = 0     otherwise
   eq. (17) r_a = -0.05 (|v_t - v_{t-1}| + |w_t - w_{t-1}|)   (commanded actions)
+  ours     r_t -= time_penalty on every step that does not arrive (default 0: the paper's reward;
+           ``stack-train drl --time-penalty`` sets it, see the README: without it, standing still
+           is worth 0 and the greedy policy learnt to stand still in 18 % of held-out scenes)
 
 |p_t - p~_t| is the centre distance to the nearest other robot, |p_t - B_k| the distance from
 the robot's centre to the nearest obstacle surface.
@@ -24,7 +27,7 @@ R_NEAR = -0.3
 K_ACTION = 0.05
 
 
-def reward(d_prev, d_now, d_robot, d_obstacle, a_prev, a_now, radius: float = R_D):
+def reward(d_prev, d_now, d_robot, d_obstacle, a_prev, a_now, radius: float = R_D, time_penalty: float = 0.0):
     """Returns (r, arrived, collided), arrays of the broadcast shape of the inputs.
 
     d_prev, d_now: distance to the target before and after the step; d_robot: centre distance to
@@ -39,4 +42,5 @@ def reward(d_prev, d_now, d_robot, d_obstacle, a_prev, a_now, radius: float = R_
     r_c = np.where(collided, R_COLLIDE, np.where(near, R_NEAR, 0.0))  # eq. (16)
     da = np.abs(np.asarray(a_now, float) - np.asarray(a_prev, float))
     r_a = -K_ACTION * (da[..., 0] + da[..., 1])  # eq. (17)
-    return r_g + r_c + r_a, arrived, collided  # eq. (14)
+    r_t = np.where(arrived, 0.0, -time_penalty)  # ours (0: eq. 14 exactly)
+    return r_g + r_c + r_a + r_t, arrived, collided  # eq. (14)

@@ -26,6 +26,12 @@ the adjustment goes on "until either Delta D < 0.1 m or each robot is within 10 
 We follow the text: eq. (7)-(8) apply while Delta D >= 0.1 m and D^rankn > 10 m, and only in
 target searching. The sign of beta's turn (left) is the paper's eq. (7) as printed.
 
+**Terminal matching (ours).** Eq. (2) is a multiplicative integrator on normalised inputs: with every
+robot at the speed bound and a gap of under a metre (1/50 of the inputs' scale) nothing slows the
+nearer robots. Inside ``d_near_all``, where the paper stops the heading adjustment because the robots
+are close, a robot of rank < n drives at most v_n D_goal^i / D_goal^rankn (the farthest robot's
+time to go); ``terminal_match = False`` leaves eq. (2) alone.
+
 **Ordering.** The coordinator's purpose is to slow the nearest robot relative to the farthest; we
 take (alpha_1, alpha_n) = (min, max) of the two outputs, so the farthest robot's factor is never
 the smaller one (with eq. (1), alpha is non-decreasing in rank).
@@ -87,6 +93,9 @@ class MrcConfig:
     """[m] ... or when every robot is within this of the target."""
     max_age: float = 3.0
     """[s] peers whose knowledge is older than this are left out."""
+    terminal_match: bool = True
+    """Ours: once every robot is within ``d_near_all`` (where eq. 7-8 stop), a robot nearer than the farthest
+    drives at most v_n D_goal^i / D_goal^rankn, so that it arrives when the farthest does (False: eq. 2 alone)."""
 
 
 class FlcSr:
@@ -221,7 +230,11 @@ class Coordinator:
         d_n = float(d.max())
         adjust = n > 1 and rank < n and (d_n - d.min()) >= c.delta_d_stop and d_n > c.d_near_all
         b = beta(alpha, d_own, d_n) if adjust else 0.0
-        return Coordination(alpha, self.v, b, adjust, rank, n, x)
+        v_out = self.v
+        if c.terminal_match and n > 1 and rank < n and 0.0 < d_n <= c.d_near_all:
+            v_n = float(v[order][-1])  # the farthest robot's speed: match its time to go, d_n / v_n
+            v_out = float(np.clip(min(self.v, v_n * d_own / d_n), c.v_min, c.v_max))
+        return Coordination(alpha, v_out, b, adjust, rank, n, x)
 
     def theta_adj(self, theta_goal: float, co: Coordination) -> float:
         """Eq. (7)."""

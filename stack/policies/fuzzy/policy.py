@@ -2,26 +2,24 @@
 
 Per control step (Algorithm 1, for this robot only):
   1. L_1..L_8 from the newest scan (:func:`.rbc.sectors`);
-  2. D_goal of this robot and of every neighbour it has heard (reconstructed from the
-     Observation's [distance, bearing] and this robot's pose), neighbour speeds by tracking;
+  2. D_goal of this robot and of every neighbour it has heard, and the neighbours' speeds and ages;
   3. the decentralised MRC (:class:`.mrc.Coordinator`): alpha_i, v_r by eq. (1)-(2), beta_i and
      theta_adj by eq. (7)-(8) (FLC_SR for ``fuzzy``, the peephole LSTM for ``fuzzy-lstm``, none for
      ``coordinator="none"``: constant v0, theta_adj = theta_goal);
   4. the RBC (:class:`.rbc.RobotBehaviourController`): supervisor, left/right BF or TS -> theta_r;
   5. (v, w) = (v_r, theta_r / turn_time).
 
-What the Observation does not carry, and how we stand in for it:
-- the common target: each robot knows only its own goal (``obs.target``). Goals of an arrival-time
-  task lie "a little apart around the target", so a neighbour's distance to the target is taken as
-  its distance to this robot's goal (error at most the spread of the goals) unless
-  ``FuzzyConfig.target`` names the common target;
-- neighbours' speeds: not in the Observation; estimated from successive reconstructed positions
-  (nearest-neighbour association, gate ``track_gate``), smoothed by ``track_smooth``;
-- the age of a neighbour's state: not in the Observation (the agent drops states older than
-  3 s and extrapolates the rest along their reported velocity for at most 1 s); ages are 0 here.
-If the Observation grows ``neighbour_states`` ((n, 6) rows [x, y, yaw, v, w, age], world frame)
-and ``arrival_target`` (the centroid of every robot's goal in an arrival-time task), they are used
-instead: exact speeds and ages, and the common target (proposed; see the issue's report).
+What each robot knows of the others (the agent's Observation):
+- ``neighbour_states`` ((n, 6) rows [x, y, yaw, v, w, age], world frame): their broadcast states with
+  exact speeds and ages;
+- ``neighbour_d_goal``: each arrival-time peer's distance to its own goal (``State.d_goal``), which is
+  what the paper's central MRC ranks (every robot's distance to its target).
+Where a peer did not say its D_goal (an older sender), or with ``peer_goals = False``, its distance to
+this robot's goal stands in (goals of an arrival-time task lie "a little apart around the target": an
+error of at most the spread of the goals), or to ``FuzzyConfig.target`` when that names the common
+target. Without ``neighbour_states`` (a bare Observation of [distance, bearing] pairs), positions are
+reconstructed from this robot's pose and speeds estimated by nearest-neighbour tracking (gate
+``track_gate``, smoothing ``track_smooth``), with ages 0.
 
 Additions of ours (the paper's Webots robots could not hit what its simulator kept them from):
 - in TS the speed is multiplied by max(``cos_floor``, cos theta_r) (a unicycle turns before it
@@ -81,6 +79,9 @@ class FuzzyConfig:
     """[m] association gate for neighbour tracking (plus v_max dt)."""
     track_smooth: float = 0.3
     """Exponential smoothing weight of a new speed sample."""
+    peer_goals: bool = True
+    """Rank by the distances the peers report to their own goals (``State.d_goal``), as the paper's central
+    MRC knows them; False: each peer's distance to this robot's goal (or to ``target``)."""
     mrc: MrcConfig = field(default_factory=MrcConfig)
     supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
 
@@ -166,10 +167,14 @@ class FuzzyPolicy(Policy):
 
     # -- neighbours -------------------------------------------------------------------------
     def _peers(self, obs: Observation, target: tuple[float, float]) -> list[PeerEstimate]:
-        states = getattr(obs, "neighbour_states", None)  # proposed Observation field, see the module doc
+        states = getattr(obs, "neighbour_states", None)  # see the module doc
         if states is not None and np.asarray(states).size:
             st = np.asarray(states, float).reshape(-1, 6)  # x, y, yaw, v, w, age
-            return [PeerEstimate(math.hypot(x - target[0], y - target[1]), v, age) for x, y, _, v, _, age in st]
+            dg = np.asarray(getattr(obs, "neighbour_d_goal", np.zeros(0)), float).ravel()
+            if not self.cfg.peer_goals or dg.size != len(st):
+                dg = np.full(len(st), np.nan)
+            return [PeerEstimate(float(g) if math.isfinite(g) else math.hypot(x - target[0], y - target[1]), v, age)
+                    for (x, y, _, v, _, age), g in zip(st, dg)]
         nb = np.asarray(obs.neighbours, float).reshape(-1, 2)
         pos = [(obs.x + d * math.cos(obs.yaw + b), obs.y + d * math.sin(obs.yaw + b)) for d, b in nb]
         gate = self.cfg.track_gate + self.v_max * obs.dt
@@ -204,8 +209,11 @@ class FuzzyPolicy(Policy):
         L = sectors(scan, self.fov, obs.scan_range or self.range_max)
         own_goal = obs.target if obs.target is not None else (obs.x + d_g * math.cos(obs.yaw + theta_goal),
                                                                obs.y + d_g * math.sin(obs.yaw + theta_goal))
-        common = cfg.target or getattr(obs, "arrival_target", None)  # proposed Observation field
+        common = cfg.target
         target = common or own_goal
+        reported = np.asarray(getattr(obs, "neighbour_d_goal", np.zeros(0)), float)
+        if cfg.peer_goals and reported.size and np.isfinite(reported).any():
+            common = None  # the peers say how far each is from its own goal: so does this robot
         d_own = math.hypot(obs.x - target[0], obs.y - target[1]) if common else d_g
         peers = self._peers(obs, target)
         if self.arrived:
