@@ -148,6 +148,16 @@ def main(argv=None) -> int:
                     help="a robot.fuzzy setting for every run, e.g. terminal_match=false peer_goals=false (ablations)")
     ap.add_argument("--table-only", action="store_true", help="rewrite OUT/chang_table.md from OUT/chang_table.json, run nothing")
     a = ap.parse_args(argv)
+    if a.fuzzy:  # checked as the scenario reader checks robot.fuzzy: one line, exit 2
+        from types import SimpleNamespace
+
+        from stack.policies.fuzzy import make_fuzzy
+        from stack.scenario import LidarConfig
+
+        try:
+            make_fuzzy(SimpleNamespace(fuzzy=dict(a.fuzzy), lidar=LidarConfig(), v_max=1.0, radius=0.3))
+        except (TypeError, ValueError) as e:
+            ap.error(f"--fuzzy: {e}")
     a.out.mkdir(parents=True, exist_ok=True)
     if a.table_only:
         src = a.out / "chang_table.json"
