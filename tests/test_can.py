@@ -12,6 +12,7 @@ import math
 import os
 import random
 import select
+import threading
 import time
 
 import can
@@ -339,6 +340,29 @@ def test_lost_device_is_a_named_fault_with_estop(rig, failure):
     assert rig.driver.command(0.5, 0.0) == (0.0, 0.0)  # a faulted driver sends no motion
     if failure == "heartbeats muted":  # the device itself obeyed the Estop
         assert rig.pair.axes[0].state == rig.pair.axes[1].state == odrive.AxisState.IDLE
+
+
+def test_the_control_step_itself_trips_a_stale_heartbeat():
+    """A lock-step agent's clock jumps a step at a time while its threads may be starved (a loaded
+    machine): ``command()`` checks the heartbeats on that clock itself, so a stale device stops the robot
+    on the first step it is stale, whatever the supervisor thread is doing. Here only the control thread
+    sees time pass; the supervisor and the receiver see it stand still, as a starved thread would."""
+    control = threading.current_thread()
+    now = [0.0]
+    r = Rig()
+    r.driver = CanDriver(7, LIMITS, r.cfg, clock=lambda: now[0] if threading.current_thread() is control else 0.0)
+    r.start()
+    try:
+        assert r.driver.command(0.3, 0.0) == (0.3, 0.0)
+        r.pair.mute_heartbeats()
+        now[0] = 0.25  # within heartbeat_timeout (0.3 s) of the last heartbeat: still fine
+        assert r.driver.command(0.3, 0.0) == (0.3, 0.0) and r.driver.fault is None
+        now[0] = 0.35
+        assert r.driver.command(0.3, 0.0) == (0.0, 0.0)  # this very step: zero, and the fault says why
+        assert "no heartbeat for 0.35 s" in r.driver.fault
+        assert wait_for(lambda: r.pair.axes[0].state == r.pair.axes[1].state == odrive.AxisState.IDLE, 1.0)
+    finally:
+        r.close()
 
 
 def test_axis_error_is_a_fault_naming_the_decoded_error(rig):

@@ -156,6 +156,7 @@ class Driver(ABC):
         if not self._is_open:
             raise DriverError(f"{self.name} driver {self.robot_id}: command on a closed driver")
         v, w = self.clamp(float(v), float(w))
+        self._check_health()  # on the control step too: a busy supervisor thread must not delay a fault
         if self.fault is not None:
             v, w = 0.0, 0.0
         with self._lock:
@@ -212,6 +213,11 @@ class Driver(ABC):
 
     @abstractmethod
     def _send(self, v: float, w: float) -> None: ...
+
+    def _check_health(self) -> None:
+        """Trip a fault now if the device has gone stale on the driver's clock (a missing heartbeat or
+        odometry). ``command()`` calls it every control step, the backend's supervisor thread between
+        steps; a backend with nothing to watch keeps this no-op."""
 
     def _send_step(self, v: float, w: float, step: int) -> None:
         """Send a command belonging to control step ``step`` (lock-step worlds care; devices do not)."""

@@ -370,12 +370,7 @@ class CanDriver(Driver):
         cfg = self.config
         period = min(0.02, cfg.heartbeat_timeout / 5, cfg.keepalive_period / 2)
         while not self._halt.wait(period):
-            now = self._clock()
-            with self._state:
-                stale = [(a, now - a.hb_time) for a in self._axes.values()
-                         if a.hb_time is not None and now - a.hb_time > cfg.heartbeat_timeout]
-            if stale:
-                self._trip("; ".join(f"{a.label}: no heartbeat for {age:.2f} s" for a, age in stale))
+            self._check_health()
             if self.fault is None and self._keepalive.due():
                 try:
                     with self._cmd_lock:
@@ -384,6 +379,15 @@ class CanDriver(Driver):
                 except (can.CanError, OSError) as e:
                     self._count("tx_error")
                     self._trip(f"keepalive send failed on {self._bus_name()}: {e}")
+
+    def _check_health(self) -> None:
+        """A heartbeat older than ``heartbeat_timeout`` on the driver's clock is a fault."""
+        now = self._clock()
+        with self._state:
+            stale = [(a, now - a.hb_time) for a in self._axes.values()
+                     if a.hb_time is not None and now - a.hb_time > self.config.heartbeat_timeout]
+        if stale:
+            self._trip("; ".join(f"{a.label}: no heartbeat for {age:.2f} s" for a, age in stale))
 
     def _trip(self, reason: str) -> None:
         """First fault wins: zero velocity and Estop to both axes, then report."""

@@ -248,11 +248,7 @@ class JackalDriver(Driver):
         cfg = self.config
         period = min(0.02, cfg.odom_timeout / 5, cfg.keepalive_period / 2)
         while not self._halt.wait(period):
-            now = self._clock()
-            with self._state:
-                age = None if self._odom_time is None else now - self._odom_time
-            if age is not None and age > cfg.odom_timeout:
-                self._trip(f"no odometry on {self.odom_key} for {age:.2f} s")
+            self._check_health()
             if self._keepalive.due():
                 try:
                     with self._cmd_lock:
@@ -260,6 +256,14 @@ class JackalDriver(Driver):
                 except DriverError as e:
                     self._count("tx_error")
                     log.error("%s", e)
+
+    def _check_health(self) -> None:
+        """Odometry older than ``odom_timeout`` on the driver's clock is a fault."""
+        now = self._clock()
+        with self._state:
+            age = None if self._odom_time is None else now - self._odom_time
+        if age is not None and age > self.config.odom_timeout:
+            self._trip(f"no odometry on {self.odom_key} for {age:.2f} s")
 
     def _trip(self, reason: str) -> None:
         """First fault wins: zero Twist, then report."""

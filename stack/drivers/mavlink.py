@@ -572,15 +572,11 @@ class MavlinkDriver(Driver):
         period = min(0.02, cfg.keepalive_period / 2, cfg.heartbeat_period / 2)
         gcs_heartbeat = Periodic(cfg.heartbeat_period, self._clock)
         while not self._halt.is_set():
-            now = self._clock()
             try:
                 if gcs_heartbeat.due():
                     gcs_heartbeat.done()
                     self._send_heartbeat()
-                with self._state:
-                    age = None if not self._active or self._hb_time is None else now - self._hb_time
-                if age is not None and age > cfg.heartbeat_timeout:
-                    self._trip(f"no HEARTBEAT from system {cfg.target_system} for {age:.1f} s")
+                self._check_health()
                 if self.fault is None and self._keepalive.due():
                     with self._cmd_lock:
                         if self.fault is None and self._active:
@@ -590,6 +586,14 @@ class MavlinkDriver(Driver):
                 if not self._halt.is_set():
                     self._trip(f"send failed on {cfg.connection}: {e}")
             self._halt.wait(period)
+
+    def _check_health(self) -> None:
+        """The vehicle's HEARTBEAT older than ``heartbeat_timeout`` on the driver's clock is a fault."""
+        now = self._clock()
+        with self._state:
+            age = None if not self._active or self._hb_time is None else now - self._hb_time
+        if age is not None and age > self.config.heartbeat_timeout:
+            self._trip(f"no HEARTBEAT from system {self.config.target_system} for {age:.1f} s")
 
     def _trip(self, reason: str, taken_over: bool = False) -> None:
         """First fault wins: zero target, then report."""
