@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -30,6 +29,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from fleetrun import fleet, scenario_with  # noqa: E402  (bench/, beside this script)
 
 PAPER = {  # (spread, completion) in steps, Tables 2 and 3
     "chang-three": {"flc": (5, 785), "lstm": (8, 778), "none": (504, 901)},
@@ -44,33 +45,17 @@ def _csv(kind):
 
 def fleet_run(scenario: Path, coord: str, seed: int, loss: float, out: Path, env: dict, fuzzy: dict | None = None) -> dict:
     policy = "fuzzy-lstm" if coord == "lstm" else "fuzzy"
-    e = dict(env)
     over = dict(fuzzy or {}) | ({"coordinator": "none"} if coord == "none" else {})
-    if over:  # the same scenario, every robot with these robot.fuzzy settings ("no MRC": coordinator none)
-        import yaml
-
-        raw = yaml.safe_load(scenario.read_text())
-        robot = dict(raw.get("robot") or {})
-        robot["fuzzy"] = dict(robot.get("fuzzy") or {}) | over
-        raw["robot"] = robot
-        out.mkdir(parents=True, exist_ok=True)
-        scenario = out / f"{scenario.stem}-{coord}.yaml"
-        scenario.write_text(yaml.safe_dump(raw, sort_keys=False))
-    exe = Path(sys.executable).with_name("stack-fleet")
-    cmd = [str(exe), "run", str(scenario), "--policy", policy, "--seed", str(seed), "--loss", str(loss),
-           "--out", str(out), "--no-progress", "--no-plots"]
-    t0 = time.perf_counter()
-    p = subprocess.run(cmd, env=e, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    rep_path = out / "report.json"
-    if not rep_path.exists():
-        return {"error": (p.stderr or p.stdout).strip().splitlines()[-1:] or ["no report"], "rc": p.returncode, "wall_s": wall}
-    rep = json.loads(rep_path.read_text())
+    # the same scenario, every robot with these robot.fuzzy settings ("no MRC": coordinator none)
+    scenario = scenario_with(scenario, "fuzzy", over, out, coord)
+    rep, err, wall = fleet(scenario, out, "--policy", policy, "--seed", str(seed), "--loss", str(loss), env=env)
+    if rep is None:
+        return {"error": [err], "wall_s": wall}
     arr = [r.get("arrival_time_s") for r in rep["robots"].values()]
     dt = rep.get("dt", 0.1)
     complete = None if any(a is None for a in arr) else round(max(arr) / dt)
     col = rep["collisions"]["robot_robot"] + rep["collisions"]["robot_obstacle"]
-    return {"spread": rep.get("arrival_spread_steps"), "complete": complete, "collisions": col, "rc": p.returncode,
+    return {"spread": rep.get("arrival_spread_steps"), "complete": complete, "collisions": col,
             "min_obstacle_m": rep.get("min_obstacle_distance_m"), "min_robot_m": rep.get("min_robot_distance_m"),
             "wall_s": round(wall, 1)}
 

@@ -39,6 +39,17 @@ def test_leader_speed_rule_eq20():
     assert DecisionLayer.leader_speed(1.0, 10.0) == 0.5
 
 
+def test_leader_hold_keeps_the_farthest_robot_in_range():
+    """Ours, beyond eq. (20): from start d_com to stop d_com the leader's speed falls linearly to zero."""
+    hold = (0.8, 0.95)
+    assert DecisionLayer.leader_speed(1.0, 4.0, hold=hold, d_com=10.0) == 1.0  # near: untouched
+    assert DecisionLayer.leader_speed(1.0, 8.0, hold=hold, d_com=10.0) == pytest.approx(5 / 8)  # eq. (20) only
+    assert DecisionLayer.leader_speed(1.0, 8.75, hold=hold, d_com=10.0) == pytest.approx(5 / 8.75 * 0.5)
+    assert DecisionLayer.leader_speed(1.0, 9.5, hold=hold, d_com=10.0) == 0.0  # waits for it
+    assert DecisionLayer.leader_speed(1.0, 9.9, hold=hold, d_com=10.0) == 0.0
+    assert DecisionLayer.leader_speed(1.0, 9.5, hold=None, d_com=10.0) == pytest.approx(5 / 9.5)  # the paper's rule
+
+
 def test_follower_situations_and_eq3_target():
     d = layer(1, "follower")
     leader = nb(0, 10, 0, role="leader")

@@ -279,7 +279,7 @@ def test_shield_masks_the_actions_that_would_hit_what_the_scan_sees():
 
 def test_robot_drl_settings_reach_the_policy(tmp_path):
     from stack.policies.drl.policy import WEIGHTS, make_drl
-    from stack.scenario import parse_scenario
+    from stack.scenario import ScenarioError, parse_scenario
 
     d = scenario_dict()
     d["robot"]["drl"] = {"shield": False, "weights": str(WEIGHTS)}
@@ -289,3 +289,12 @@ def test_robot_drl_settings_reach_the_policy(tmp_path):
     d["robot"]["drl"] = {"shield_margin": 0.2}
     p = make_drl(parse_scenario(d, "s.yaml").robots[1])
     assert p.shield is not None and p.shield.clear == pytest.approx(sc.robots[1].radius + 0.2)
+    assert p.leader_hold == (0.8, 0.95)  # the default: the leader waits before a follower falls out of range
+    d["robot"]["drl"] = {"leader_hold": None}
+    assert make_drl(parse_scenario(d, "s.yaml").robots[0]).leader_hold is None  # eq. (20) alone
+    d["robot"]["drl"] = {"leader_hold": [0.5, 0.9]}
+    assert make_drl(parse_scenario(d, "s.yaml").robots[0]).leader_hold == (0.5, 0.9)
+    for bad in ([0.9, 0.8], [0.8], [0.8, 1.2], "near", [True, 0.9]):
+        d["robot"]["drl"] = {"leader_hold": bad}
+        with pytest.raises(ScenarioError, match=r"robot\.drl.*leader_hold: expected \[start, stop\]"):
+            parse_scenario(d, "s.yaml")

@@ -291,6 +291,35 @@ def test_policy_ranks_by_the_distances_peers_report_to_their_own_goals():
     assert pol.last.rank == 1
 
 
+def test_arrival_detour_passes_a_standing_robot_on_the_goals_side():
+    """Within detour_radius of its goal, a robot whose way is blocked by a standing (or creeping) neighbour
+    steers along the tangent past it on the goal's side, 2 radius + detour_margin off its centre."""
+    def obs(*states):
+        return Observation(d_g=2.5, alpha_g=0.0, v=0, w=0, scans=np.full((1, 180), 5.0), x=0, y=0, yaw=0.0,
+                           target=(2.5, 0), neighbour_states=np.array(states, float).reshape(-1, 6))
+
+    pol = make_fuzzy()
+    clear = 2 * pol.radius + pol.cfg.detour_margin
+    b = math.atan2(0.1, 1.2)  # a robot standing just left of the line to the goal: pass it on the right
+    heading = pol._detour(obs([1.2, 0.1, 0.0, 0.0, 0.0, 0.0]), 2.5, 0.0)
+    assert heading == pytest.approx(b - math.asin(clear / math.hypot(1.2, 0.1)))
+    assert pol._detour(obs([1.2, -0.1, 0.0, 0.1, 0.0, 0.0]), 2.5, 0.0) > 0  # just right of it, creeping: the left
+    assert pol._detour(obs([1.2, 0.1, 0.0, 0.8, 0.0, 0.0]), 2.5, 0.0) is None  # driving: not a standing obstacle
+    assert pol._detour(obs([1.2, 1.5, 0.0, 0.0, 0.0, 0.0]), 2.5, 0.0) is None  # beside the way, not in it
+    assert pol._detour(obs([4.0, 0.0, 0.0, 0.0, 0.0, 0.0]), 2.5, 0.0) is None  # beyond the goal
+    assert pol._detour(obs([1.2, 0.1, 0.0, 0.0, 0.0, 0.0], [1.0, -1.0, 0, 0, 0, 0]), 2.5, 0.0) is None  # both sides shut
+    walled = obs([1.2, 0.1, 0.0, 0.0, 0.0, 0.0])
+    walled.scans = np.full((1, 180), 5.0)
+    walled.scans[0, 30:60] = 0.8  # a wall 0.8 m away along the tangent (-56 deg): no detour into it
+    assert pol._detour(walled, 2.5, 0.0) is None
+    near = pol._detour(obs([0.7, 0.0, 0.0, 0.0, 0.0, 0.0]), 2.5, 0.0)
+    assert math.pi / 2 < abs(near) <= 3 * math.pi / 4  # nearer than the clearance: away from it first
+    v, w = make_fuzzy().act(obs([1.2, 0.1, 0.0, 0.0, 0.0, 0.0]))
+    assert w < -0.5  # the policy takes the detour: a right turn toward the tangent
+    v, w = FuzzyPolicy(FuzzyConfig(detour_radius=0.0)).act(obs([1.2, 0.1, 0.0, 0.0, 0.0, 0.0]))
+    assert abs(w) < 1e-9  # off: straight at the goal (the scan shows nothing; the paper's TS)
+
+
 def test_phase1_fitness_of_the_shipped_bf_controller_is_a_success():
     from stack.train.fuzzy import T_SUC, phase1_fitness
 

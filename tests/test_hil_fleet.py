@@ -24,6 +24,8 @@ def sim_run(tmp_path_factory):
 
 def _same_run(rep: dict, ref: dict) -> None:
     assert rep["success"], rep
+    # a step the world took without waiting for an agent (one stalled > 2 s wall) changes the run itself
+    assert rep["late_steps"] == 0 == ref["late_steps"], (rep["late_steps"], ref["late_steps"])
     assert rep["collisions"] == {"robot_robot": 0, "robot_obstacle": 0}
     assert rep["leader_time_to_goal_s"] == pytest.approx(ref["leader_time_to_goal_s"], abs=1.5)
     assert rep["formation_error_rms_m"] == pytest.approx(ref["formation_error_rms_m"], abs=0.1)

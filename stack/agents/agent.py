@@ -467,7 +467,8 @@ class Agent:
         else:
             v, w = (self.policy if dec.use_network or not self.policy.hybrid else self.pid).act(dec.obs)
             if self.role == "leader" and self.policy.hybrid:
-                v = DecisionLayer.leader_speed(v, dec.d_rmax, self.cfg.scenario.formation.d_leader_slow)  # eq. (20)
+                v = DecisionLayer.leader_speed(v, dec.d_rmax, self.cfg.scenario.formation.d_leader_slow,  # eq. (20)
+                                               self.policy.leader_hold, self.robot.comm_range)
 
         self.seq += 1
         st = State(id=self.id, role=self.role, seq=self.seq, stamp=self._stamp(), x=pose.x, y=pose.y, yaw=pose.yaw,

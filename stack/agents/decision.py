@@ -162,6 +162,16 @@ class DecisionLayer:
         return d
 
     @staticmethod
-    def leader_speed(v: float, d_rmax: float, d_slow: float = 5.0) -> float:
-        """Eq. (20): v_L^c (5 / d_L^rmax) if d_L^rmax > 5 m."""
-        return v * (d_slow / d_rmax) if d_rmax > d_slow else v
+    def leader_speed(v: float, d_rmax: float, d_slow: float = 5.0, hold: tuple[float, float] | None = None,
+                     d_com: float = 10.0) -> float:
+        """Eq. (20): v_L^c (5 / d_L^rmax) if d_L^rmax > 5 m.
+
+        ``hold`` (ours, beyond eq. 20): (start, stop) as fractions of ``d_com``. Eq. (20) still leaves the leader
+        at half speed when a follower is 10 m away, so a follower held up at an obstacle falls out of range;
+        with ``hold`` the speed also falls linearly to zero as d_rmax goes from start d_com to stop d_com."""
+        if d_rmax > d_slow:
+            v = v * (d_slow / d_rmax)
+        if hold is not None and math.isfinite(d_rmax):
+            start, stop = hold[0] * d_com, hold[1] * d_com
+            v *= min(1.0, max(0.0, (stop - d_rmax) / (stop - start)))
+        return v

@@ -235,6 +235,7 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
         "end_reason": world.get("end_reason"),
         "steps": int(K),
         "steps_per_s": _f(world.get("steps_per_s")),
+        "late_steps": world.get("late_steps"),  # lock-step: steps the world took without an agent's answer
     }
     (out / "report.json").write_text(json.dumps(report, indent=2))
     if plots:

@@ -20,6 +20,10 @@ class DrlConfig:
     """[s] how far ahead each action's arc (v, w held) is checked."""
     shield_margin: float = 0.1
     """[m] clearance kept beyond the robot's radius."""
+    leader_hold: tuple[float, float] | None = (0.8, 0.95)
+    """(start, stop), fractions of d_com: as a leader's farthest robot goes from start d_com to stop d_com,
+    its speed after eq. (20) falls linearly to zero, so a follower held up at an obstacle stays in range
+    (ours; null: the paper's eq. (20) alone)."""
 
     def __post_init__(self):
         if not isinstance(self.shield, bool):
@@ -28,5 +32,14 @@ class DrlConfig:
             v = getattr(self, k)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"{k}: expected a number >= 0, got {v!r}")
+        if self.leader_hold is not None:
+            h = self.leader_hold
+            ok = (isinstance(h, (list, tuple)) and len(h) == 2
+                  and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in h)
+                  and 0 < h[0] < h[1] <= 1)
+            if not ok:
+                raise ValueError(f"leader_hold: expected [start, stop] with 0 < start < stop <= 1 (fractions of d_com), "
+                                 f"or null, got {h!r}")
+            self.leader_hold = (float(h[0]), float(h[1]))
         if self.weights is not None and not Path(str(self.weights)).is_file():
             raise ValueError(f"weights: no such file: {self.weights}")

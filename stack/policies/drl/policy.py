@@ -94,6 +94,7 @@ class DrlPolicy(Policy):
         self.shield = (Shield(ACTIONS, radius=radius, fov=fov, horizon=cfg.shield_horizon, margin=cfg.shield_margin)
                        if cfg.shield else None)
         self.masked = 0  # steps at which the shield overruled the network's greedy action
+        self.leader_hold = cfg.leader_hold
 
     def q_values(self, obs: Observation) -> np.ndarray:
         with torch.inference_mode():

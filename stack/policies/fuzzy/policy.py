@@ -29,7 +29,11 @@ Additions of ours (the paper's Webots robots could not hit what its simulator ke
   on neighbouring goals touched side by side without it);
 - at the goal (d_goal < ``arrive_tol``) the robot stops and stays (until pushed 1 m off);
 - once a neighbour has arrived (standing still within ``arrived_radius`` of the target) the
-  others drive straight at v_max: nothing left to wait for.
+  others drive straight at v_max: nothing left to wait for;
+- the arrival detour: within ``detour_radius`` of its goal, a robot whose straight line to the goal
+  passes within 2 radius + ``detour_margin`` of a standing neighbour steers along the tangent past
+  it on the goal's side instead of boundary following round it (robots that came up on the wrong
+  sides for their goals otherwise circled the arrived ones, 12 s and more).
 """
 
 from __future__ import annotations
@@ -79,6 +83,14 @@ class FuzzyConfig:
     """[m] association gate for neighbour tracking (plus v_max dt)."""
     track_smooth: float = 0.3
     """Exponential smoothing weight of a new speed sample."""
+    detour_radius: float = 3.0
+    """[m] within this of its goal a robot passes a standing neighbour in its way along the tangent on the
+    goal's side (ours; 0: off, boundary following as anywhere else)."""
+    detour_slow: float = 0.3
+    """[m/s] a neighbour slower than this (standing, or creeping up to its own goal) is passed by the detour."""
+    detour_margin: float = 0.45
+    """[m] the clearance the detour keeps beyond the two radii (beyond ``guard``, so the guard does not hold
+    the robot at ``v_guard`` all the way round)."""
     peer_goals: bool = True
     """Rank by the distances the peers report to their own goals (``State.d_goal``), as the paper's central
     MRC knows them; False: each peer's distance to this robot's goal (or to ``target``)."""
@@ -197,6 +209,38 @@ class FuzzyPolicy(Policy):
         self.tracks = new_tracks
         return peers
 
+    def _detour(self, obs: Observation, d_g: float, theta_goal: float) -> float | None:
+        """The heading [rad, robot frame] past the nearest standing neighbour that blocks the straight line
+        to the goal, on the goal's side; None when nobody stands in the way (or the way past is blocked too)."""
+        states = np.asarray(getattr(obs, "neighbour_states", np.zeros((0, 6))), float).reshape(-1, 6)
+        clear = 2.0 * self.radius + self.cfg.detour_margin
+        standing = []
+        for x, y, _, v, _, _ in states:
+            r = math.hypot(x - obs.x, y - obs.y)
+            if abs(v) < self.cfg.detour_slow and r < d_g + self.radius:  # slow, and nearer than the goal
+                b = _wrap(math.atan2(y - obs.y, x - obs.x) - obs.yaw)
+                # the tangent's angle off its bearing; nearer than ``clear``, up to 45 deg more: away from it
+                phi = math.asin(clear / r) if r > clear else math.pi / 2 + min(math.pi / 4, (clear - r) / clear * math.pi)
+                standing.append((r, b, phi))
+        heading = theta_goal
+        for r, b, phi in sorted(standing):
+            delta = _wrap(theta_goal - b)
+            if abs(delta) < phi:  # the line to the goal passes within ``clear`` of it: by its tangent
+                heading = _wrap(b + math.copysign(phi, delta if delta != 0.0 else 1.0))
+                break
+        else:
+            return None
+        for r, b, phi in standing:  # the tangent itself must be open: to the other robots ...
+            if abs(_wrap(heading - b)) < phi - 1e-9:
+                return None
+        scan = np.asarray(obs.scans)[-1] if np.asarray(obs.scans).size else np.zeros(0)
+        if scan.size:  # ... and to the lidar within 15 deg of it (where it looks that way: else turning shows it)
+            ang = np.linspace(-self.fov / 2, self.fov / 2, scan.size)
+            cone = np.abs(ang - heading) < math.radians(15.0)
+            if cone.any() and scan[cone].min() < clear:
+                return None
+        return heading
+
     # -- the step ---------------------------------------------------------------------------
     def act(self, obs: Observation) -> tuple[float, float]:
         cfg = self.cfg
@@ -224,7 +268,12 @@ class FuzzyPolicy(Policy):
         self.last = co
         v = self.mrc.cfg.v_max if (someone_in and cfg.coordinator != "none") else co.v
         theta_adj = self.mrc.theta_adj(theta_goal, co)
-        self.behaviour, theta_r = self.rbc.steer(L, d_g, theta_goal, theta_adj)
+        detour = self._detour(obs, d_g, theta_goal) if d_g < cfg.detour_radius else None
+        if detour is None:
+            self.behaviour, theta_r = self.rbc.steer(L, d_g, theta_goal, theta_adj)
+        else:  # past a standing robot toward the goal; target searching again once by it
+            self.rbc.reset()
+            self.behaviour, theta_r = TS, detour
         left_near, right_near = L[6:].min() < cfg.side_guard, L[:2].min() < cfg.side_guard
         if left_near != right_near:  # never turn into something beside the robot; ease away from it
             theta_r = min(theta_r, -cfg.side_push) if left_near else max(theta_r, cfg.side_push)
@@ -234,6 +283,10 @@ class FuzzyPolicy(Policy):
         if L[1:7].min() < cfg.guard:
             v = min(v, cfg.v_guard)
         return float(v), float(theta_r / cfg.turn_time)
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def make_fuzzy(robot=None, *, seed: int = 0, coordinator: str = "flc", params: str | Path | None = None,
