@@ -357,3 +357,25 @@ def test_factory_robot_fuzzy_settings():
     robot.fuzzy = {"nonsense": 1}
     with pytest.raises(ValueError):
         make_fuzzy(robot)
+
+
+@pytest.mark.parametrize("key, value, words", [
+    ("detour_radius", -1, "detour_radius: expected a number >= 0, got -1"),
+    ("guard", "x", "guard: expected a number >= 0, got 'x'"),
+    ("t_brake", 0, "t_brake: expected a number > 0, got 0"),
+    ("c_min", 1.5, "c_min: expected an integer >= 0, got 1.5"),
+    ("v_min", float("nan"), "v_min: expected a number >= 0, got nan"),
+    ("terminal_match", 1, "terminal_match: expected true or false, got 1"),
+])
+def test_robot_fuzzy_values_are_checked_where_the_scenario_is_read(key, value, words):
+    """A bad value in robot.fuzzy (FuzzyConfig, MrcConfig or SupervisorConfig) is one line naming it,
+    when the scenario is read, not a traceback in an agent at its first step."""
+    from conftest import scenario_dict
+    from stack.scenario import ScenarioError, parse_scenario
+
+    d = scenario_dict()
+    d["robot"]["fuzzy"] = {key: value}
+    with pytest.raises(ScenarioError) as e:
+        parse_scenario(d, "s.yaml")
+    assert str(e.value) == f"s.yaml: robot.fuzzy: {words}"
+

@@ -6,6 +6,8 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..checks import check_numbers
+
 
 @dataclass
 class DrlConfig:
@@ -26,12 +28,7 @@ class DrlConfig:
     (ours; null: the paper's eq. (20) alone)."""
 
     def __post_init__(self):
-        if not isinstance(self.shield, bool):
-            raise ValueError(f"shield: expected true or false, got {self.shield!r}")
-        for k in ("shield_horizon", "shield_margin"):
-            v = getattr(self, k)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                raise ValueError(f"{k}: expected a number >= 0, got {v!r}")
+        check_numbers(self)  # shield, shield_horizon, shield_margin
         if self.leader_hold is not None:
             h = self.leader_hold
             ok = (isinstance(h, (list, tuple)) and len(h) == 2

@@ -44,6 +44,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..checks import check_numbers
 from .tsk import TSK
 
 ALPHA_MIN, ALPHA_MAX = 0.5, 1.5
@@ -96,6 +97,9 @@ class MrcConfig:
     terminal_match: bool = True
     """Ours: once every robot is within ``d_near_all`` (where eq. 7-8 stop), a robot nearer than the farthest
     drives at most v_n D_goal^i / D_goal^rankn, so that it arrives when the farthest does (False: eq. 2 alone)."""
+
+    def __post_init__(self):
+        check_numbers(self, positive=("d_scale", "v_scale"))
 
 
 class FlcSr:

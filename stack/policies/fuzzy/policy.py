@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from ..base import Observation, Policy
+from ..checks import check_numbers
 from .mrc import Coordinator, FlcSr, LstmMrc, LstmWeights, MrcConfig, PeerEstimate
 from .rbc import BF_LEFT, BF_RIGHT, TS, BoundaryFollower, RbcConfig, RobotBehaviourController, SupervisorConfig, sectors
 from .tsk import TSK
@@ -96,6 +97,9 @@ class FuzzyConfig:
     MRC knows them; False: each peer's distance to this robot's goal (or to ``target``)."""
     mrc: MrcConfig = field(default_factory=MrcConfig)
     supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
+
+    def __post_init__(self):
+        check_numbers(self, positive=("turn_time", "t_brake"))
 
 
 def hand_set_params() -> dict:

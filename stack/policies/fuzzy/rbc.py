@@ -43,6 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..checks import check_numbers
 from .tsk import TSK
 
 N_SECTORS = 8
@@ -106,6 +107,9 @@ class SupervisorConfig:
     """Fig. 5's step counter: after this many BF steps a free search direction ends BF even without progress."""
     d_release: float = 3.0
     """[m] this near the target a free search direction ends BF at once."""
+
+    def __post_init__(self):
+        check_numbers(self)
 
 
 class BehaviourSupervisor:
