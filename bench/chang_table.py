@@ -30,7 +30,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from fleetrun import fleet, scenario_with  # noqa: E402  (bench/, beside this script)
+from fleetrun import fleet, scenario_with, setting  # noqa: E402  (bench/, beside this script)
 
 PAPER = {  # (spread, completion) in steps, Tables 2 and 3
     "chang-three": {"flc": (5, 785), "lstm": (8, 778), "none": (504, 901)},
@@ -86,15 +86,6 @@ def _with_fuzzy(robot, fuzzy: dict | None):
     return dataclasses.replace(robot, fuzzy=dict(getattr(robot, "fuzzy", None) or {}) | fuzzy)
 
 
-def _setting(s: str) -> tuple[str, object]:
-    import yaml
-
-    k, sep, v = s.partition("=")
-    if not sep or not k:
-        raise argparse.ArgumentTypeError(f"--fuzzy {s!r}: expected KEY=VALUE (a robot.fuzzy field)")
-    return k, yaml.safe_load(v)
-
-
 def _ms(xs):
     xs = [x for x in xs if x is not None]
     if not xs:
@@ -129,7 +120,7 @@ def main(argv=None) -> int:
     ap.add_argument("--loss", type=_csv(float), default=[0.0, 0.1, 0.3])
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--out", type=Path, default=Path("runs/chang-table"))
-    ap.add_argument("--fuzzy", type=_setting, action="append", default=[], metavar="KEY=VALUE",
+    ap.add_argument("--fuzzy", type=setting("--fuzzy", "fuzzy"), action="append", default=[], metavar="KEY=VALUE",
                     help="a robot.fuzzy setting for every run, e.g. terminal_match=false peer_goals=false (ablations)")
     ap.add_argument("--table-only", action="store_true", help="rewrite OUT/chang_table.md from OUT/chang_table.json, run nothing")
     a = ap.parse_args(argv)

@@ -23,18 +23,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from fleetrun import fleet, scenario_with  # noqa: E402  (bench/, beside this script)
+from fleetrun import fleet, scenario_with, setting  # noqa: E402  (bench/, beside this script)
 
 SCENARIOS = ["scenarios/four-robot-obstacles.yaml", "scenarios/six-robot.yaml", "scenarios/bai-case2.yaml"]
-
-
-def _setting(s: str) -> tuple[str, object]:
-    import yaml
-
-    k, sep, v = s.partition("=")
-    if not sep or not k:
-        raise argparse.ArgumentTypeError(f"--drl {s!r}: expected KEY=VALUE (a robot.drl field)")
-    return k, yaml.safe_load(v)
 
 
 def summary(rep: dict) -> dict:
@@ -69,7 +60,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--out", type=Path, default=Path("runs/drl-fleet"))
     ap.add_argument("--figures", type=Path, default=None, help="copy the seed-0 plots here (bai-drl-<scenario>-*.png)")
-    ap.add_argument("--drl", type=_setting, action="append", default=[], metavar="KEY=VALUE",
+    ap.add_argument("--drl", type=setting("--drl", "drl"), action="append", default=[], metavar="KEY=VALUE",
                     help="a robot.drl setting for every run, e.g. shield=false or leader_hold=null")
     a = ap.parse_args(argv)
     if a.seeds < 1:

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import subprocess
 import sys
@@ -39,3 +40,13 @@ def fleet(scenario: Path, out: Path, *args: str, env: dict | None = None, plots:
         lines = (p.stderr or p.stdout).strip().splitlines()
         return None, lines[-1] if lines else f"no report (exit {p.returncode})", wall
     return json.loads(rep_path.read_text()), "", wall
+
+
+def setting(flag: str, block: str):
+    """An argparse type for ``FLAG KEY=VALUE`` (a ``robot.<block>`` field; VALUE read as YAML)."""
+    def parse(s: str) -> tuple[str, object]:
+        k, sep, v = s.partition("=")
+        if not sep or not k:
+            raise argparse.ArgumentTypeError(f"{flag} {s!r}: expected KEY=VALUE (a robot.{block} field)")
+        return k, yaml.safe_load(v)
+    return parse

@@ -77,13 +77,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..estimation.pose import wrap as _wrap
 from .base import Observation, Policy
 
 TWO_PI = 2.0 * math.pi
-
-
-def _wrap(a):
-    return (a + math.pi) % TWO_PI - math.pi
 
 
 def _sigmoid(A: np.ndarray) -> np.ndarray:

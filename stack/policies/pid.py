@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from ..estimation.pose import wrap as _wrap
 from .base import Observation, Policy
 
 
@@ -56,7 +57,3 @@ class PidPolicy(Policy):
         v = (g.k_v * obs.d_g + max(0.0, u_ff)) * math.cos(e)
         v = max(0.0, min(g.v_cap, v))
         return v, w
-
-
-def _wrap(a: float) -> float:
-    return math.atan2(math.sin(a), math.cos(a))

@@ -100,14 +100,11 @@ from dataclasses import asdict, dataclass, fields, is_dataclass
 
 import numpy as np
 
+from ..estimation.pose import wrap as _wrap
 from ..planning.qlearning import QLearningConfig, QLearningResult, plan
 from .base import Observation, Policy
 
 TWO_PI = 2.0 * math.pi
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % TWO_PI - math.pi
 
 
 @dataclass

@@ -45,6 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ...estimation.pose import wrap as _wrap
 from ..base import Observation, Policy
 from ..checks import check_numbers
 from .mrc import Coordinator, FlcSr, LstmMrc, LstmWeights, MrcConfig, PeerEstimate
@@ -287,10 +288,6 @@ class FuzzyPolicy(Policy):
         if L[1:7].min() < cfg.guard:
             v = min(v, cfg.v_guard)
         return float(v), float(theta_r / cfg.turn_time)
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def make_fuzzy(robot=None, *, seed: int = 0, coordinator: str = "flc", params: str | Path | None = None,
