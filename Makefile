@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-$(shell cksum pyproject.toml | cut -d' ' -f1)
 
-.PHONY: demo test bench clean
+.PHONY: demo test bench core-check clean
 
 $(STAMP): pyproject.toml
 	python3 -m venv $(VENV)
@@ -21,5 +21,12 @@ bench: $(STAMP)
 	$(PY) -m pip install -q -e '.[test,bench]'
 	$(PY) bench/fleet_bench.py
 
+# What a robot installs: the core package alone in a fresh venv (no simulator, no torch), then the agent's help.
+core-check:
+	rm -rf .venv-core && python3 -m venv .venv-core
+	.venv-core/bin/python -m pip install -q .
+	.venv-core/bin/python -m pip list --format=freeze | grep -iE '^(pybullet|torch|matplotlib|tqdm)=' || true
+	.venv-core/bin/stack-agent --help >/dev/null && echo "core install: stack-agent --help runs"
+
 clean:
-	rm -rf $(VENV) runs
+	rm -rf $(VENV) .venv-core runs
