@@ -197,7 +197,10 @@ class Fleet:
         argv = [sys.executable, "-m", "stack.sim_bridge", "--scenario", str(self.resolved), "--connect", self.endpoint,
                 "--fleet", self.fleet, "--out", str(self.out), "--wait-agents", f"{cfg.wait_agents_s:g}",
                 *self._remote, *self._zconf]
-        argv += ["--realtime"] * cfg.realtime + ["--gui"] * cfg.gui
+        if cfg.realtime:
+            argv.append("--realtime")
+        if cfg.gui:
+            argv.append("--gui")
         for kind, rid, at in cfg.faults:
             argv += ["--" + kind, f"{rid}@{at:g}"]
         for rid, at in cfg.device_faults:
