@@ -303,3 +303,15 @@ def test_build_report_without_a_world_log(tmp_path):
                        realtime=False)
     assert rep["end_reason"] == "no world log" and rep["success"] is False and rep["crashed"] == crashed
     assert json.loads((tmp_path / "report.json").read_text()) == rep
+
+
+def test_build_report_plots(tmp_path):
+    for name, sc, log in (("formation", formation_scenario(), TruthLog.of([0, 1, 2], *formation_log())),
+                          ("arrival", arrival_scenario(), arrival_log())):
+        out = tmp_path / name
+        out.mkdir()
+        np.savez_compressed(out / "truth.npz", ids=np.array(log.ids), t=log.t, x=log.x, y=log.y, v=log.v, alive=log.alive)
+        build_report(sc, out, diags={}, estimates={}, faults=[], crashed=[], wall_time_s=1.0, realtime=False)
+        # errors.png: the followers' slot errors, so only with a formation
+        want = {"trajectories.png", "distances.png"} | ({"errors.png"} if name == "formation" else set())
+        assert {p.name for p in out.glob("*.png")} == want
