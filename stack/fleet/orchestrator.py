@@ -1,9 +1,11 @@
 """``stack-fleet run``: a Zenoh router on loopback, the world, one ``stack-agent`` process per robot.
 
-The orchestrator watches the run over Zenoh (world clock and status, agents' diag and
-state), injects ``--kill ID@T`` faults, notices crashes, stops everything in order
-(agents first: SIGTERM -> their zero commands; then the world; then the router) and
-writes ``report.json`` and the plots.
+A :class:`Fleet` has an explicit lifecycle: ``start`` (router, our session, world, agents),
+``serve`` (watch the world's clock and status and the agents' diag and state; do the
+``--kill``/``--freeze``/``--restart`` faults the world asks for; notice crashes), then
+``stop`` (agents first: SIGTERM -> their zero commands; then the world; then the router), on
+every path: the end, a start that failed, an error, Ctrl-C or SIGTERM. ``run_fleet`` runs
+one and writes ``report.json`` and the plots.
 """
 
 from __future__ import annotations
@@ -12,27 +14,28 @@ import json
 import logging
 import os
 import signal
-import socket
 import subprocess
 import sys
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import zenoh
 
-from ..comm import Keys, receive
-from ..comm import encode
-from ..comm.messages import Clock, Diag, FaultAck, FaultRequest, State, WorldStatus
+from ..comm import Keys, encode
+from ..comm.messages import FaultAck, FaultRequest
 from ..comm.session import SessionConfig, SessionError, free_tcp_endpoint, open_session
 from ..scenario import Scenario, with_driver_settings
+from .monitor import Monitor
+from .procs import Proc, stop_all, wait_port
 from .report import build_report
 
 log = logging.getLogger("stack.fleet")
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_CRASH = 0, 1, 2, 3
 ZENOH_RUNTIME = "(app: (worker_threads: 1), tx: (handover: app), rx: (handover: app), acc: (handover: app), net: (handover: app))"
+FAULT_DONE = {"kill": "killed", "freeze": "frozen", "restart": "restarted"}
+"""A fault the world asks for -> its kind in the report's ``faults``."""
 
 
 @dataclass
@@ -90,67 +93,7 @@ def sigterm_as_interrupt() -> None:
     signal.signal(signal.SIGTERM, on_term)
 
 
-class _Proc:
-    def __init__(self, name: str, argv: list[str], log_path: Path, env: dict):
-        self.name = name
-        self.log_path = log_path
-        self.log_file = open(log_path, "wb")
-        self.p = subprocess.Popen(argv, stdout=self.log_file, stderr=subprocess.STDOUT, env=env, start_new_session=True)
-        self.asked_to_stop = False
-        self.killed_at: float | None = None
-        self.frozen = False
-        self.exited_at: float | None = None
-
-    def poll(self) -> int | None:
-        return self.p.poll()
-
-    def signal(self, sig: int) -> None:
-        if self.p.poll() is None:
-            try:
-                self.p.send_signal(sig)
-            except ProcessLookupError:
-                pass
-
-    def stop(self, timeout: float = 5.0) -> int | None:
-        """SIGTERM, then SIGKILL after ``timeout``."""
-        self.asked_to_stop = True
-        self.signal(signal.SIGTERM)
-        try:
-            return self.p.wait(timeout)
-        except subprocess.TimeoutExpired:
-            self.signal(signal.SIGKILL)
-            return self.p.wait(5)
-
-    def tail(self, n: int = 5) -> str:
-        try:
-            lines = self.log_path.read_text(errors="replace").strip().splitlines()
-        except OSError:
-            return ""
-        return " | ".join(lines[-n:])
-
-    def close(self) -> None:
-        self.log_file.close()
-
-
-def _stop_all(procs: list[_Proc], timeout: float) -> None:
-    """SIGTERM every running process at once (agents: zero velocity on the way out), then wait; SIGKILL stragglers.
-    A frozen (SIGSTOPped) agent is let go on first, so it can command its zero too."""
-    running = [pr for pr in procs if pr.poll() is None]
-    for pr in running:
-        pr.asked_to_stop = True
-        if pr.frozen:
-            pr.signal(signal.SIGCONT)
-            pr.frozen = False
-        pr.signal(signal.SIGTERM)
-    for pr in running:
-        try:
-            pr.p.wait(timeout)
-        except subprocess.TimeoutExpired:
-            pr.signal(signal.SIGKILL)
-            pr.p.wait(5)
-
-
-def _agents_scenario(sc: Scenario, out: Path, world: _Proc, timeout: float = 30.0, can_log: bool = False) -> Path:
+def _agents_scenario(sc: Scenario, out: Path, world: Proc, timeout: float = 30.0, can_log: bool = False) -> Path:
     """Wait for the world's ``devices.json`` and write the scenario the agents read: the resolved one
     with each hosted robot's driver settings pointing at its simulated device (pty, UDP port, keys),
     and (``can_log``) each CAN robot's bus log in ``logs/``."""
@@ -175,284 +118,258 @@ def _agents_scenario(sc: Scenario, out: Path, world: _Proc, timeout: float = 30.
 
 
 class _Abort(Exception):
-    """The fleet could not start; the report says why."""
+    """The fleet could not start; ``crashed`` says why and the report shows it."""
 
 
-def _wait_port(endpoint: str, timeout: float = 10.0, process: "_Proc | None" = None) -> None:
-    host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if process is not None and process.poll() is not None:
-            raise TimeoutError(f"router exited with code {process.poll()} before opening {endpoint}")
+class Fleet:
+    """One simulated fleet run: ``start``, ``serve``, ``stop`` (:meth:`run` does all three and the report).
+
+    ``spawn(name, argv, log_path, env)`` starts one child process (:class:`~.procs.Proc`; tests pass their own).
+    """
+
+    def __init__(self, cfg: FleetConfig, spawn=Proc):
+        self.cfg, self.sc, self.out = cfg, cfg.scenario, cfg.out
+        self.fleet = cfg.fleet or f"run{os.getpid()}"
+        self.keys = Keys(self.fleet)
+        self.endpoint = cfg.connect or cfg.listen or free_tcp_endpoint()
+        self.env = dict(os.environ, PYTHONUNBUFFERED="1")
+        # many small processes on few cores: one zenoh worker thread each (fleet_bench: +15 % steps/s at 32 robots)
+        self.env.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME)
+        self.spawn = spawn
+        self.resolved = self.out / "scenario.resolved.yaml"
+        self.agents_scenario = self.resolved
+        self.router: Proc | None = None
+        self.procs: dict[str, Proc] = {}  # "world", "agent-<id>": the ones running now (or that ended)
+        self.retired: list[Proc] = []  # agents replaced by a restart
+        self.faults: list[dict] = []
+        self.crashed: list[dict] = []
+        self.session: zenoh.Session | None = None
+        self.mon: Monitor | None = None
+        self.ack_pub = None
+        self.diags: dict = {}
+        self.estimates: dict = {}
+        self.wanted = {(kind, rid): at for kind, rid, at in cfg.faults}
+        self.wall0 = time.monotonic()
+        self.wall_limit = cfg.wall_timeout_s or max(120.0, self.sc.duration * (3.0 if cfg.realtime else 2.0) + 60.0)
+        self._remote = ["--allow-remote"] if cfg.allow_remote else []
+        self._zconf = ["--zenoh-config", cfg.zenoh_config] if cfg.zenoh_config else []
+
+    # --- start -----------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """The run's folder, the router (unless joining one), our session, the world, the agents;
+        raises :class:`_Abort` (with ``crashed`` saying why) if any of them cannot start."""
+        (self.out / "logs").mkdir(parents=True, exist_ok=True)
+        for name in RUN_OUTPUTS:  # a folder used before: nothing of that run may pass for this one's
+            (self.out / name).unlink(missing_ok=True)
+        self.resolved.write_text(self.sc.to_yaml())
+        self._start_router()
         try:
-            with socket.create_connection((host.strip("[]"), int(port)), timeout=0.2):
-                return
-        except OSError:
-            time.sleep(0.05)
-    raise TimeoutError(f"router did not open {endpoint} within {timeout:.0f} s")
+            self.session = open_session(SessionConfig(mode="client", connect=[self.endpoint],
+                                                      config_file=self.cfg.zenoh_config,
+                                                      allow_remote=self.cfg.allow_remote))
+        except SessionError as e:
+            self._abort("orchestrator", None, str(e))
+        self.mon = Monitor(self.session, self.keys)
+        self._start_world()
+        self._start_agents()
+        self.ack_pub = self.session.declare_publisher(self.keys.world("fault_ack"),
+                                                      congestion_control=zenoh.CongestionControl.BLOCK)
 
+    def _abort(self, process: str, exit_code: int | None, why: str) -> None:
+        self.crashed.append({"process": process, "exit_code": exit_code, "sim_time_s": 0.0, "log_tail": why})
+        raise _Abort
 
-class Monitor:
-    """What the orchestrator hears on Zenoh during a run."""
-
-    def __init__(self, session: zenoh.Session, keys: Keys):
-        self.lock = threading.Lock()
-        self.t = 0.0
-        self.step = 0
-        self.status = "starting"
-        self.why = ""
-        self.diag: dict[int, Diag] = {}
-        self.estimates: dict[int, list[tuple[int, float, float]]] = {}
-        self.situation: dict[int, str] = {}
-        self.alive: set[int] = set()
-        self.malformed = 0
-        self.fault_requests: list[FaultRequest] = []
-        self._subs = [
-            session.declare_subscriber(keys.world("fault"), self._on(FaultRequest, self.fault_requests.append)),
-            session.declare_subscriber(keys.world("clock"), self._on(Clock, self._clock)),
-            session.declare_subscriber(keys.world("status"), self._on(WorldStatus, self._status)),
-            session.declare_subscriber(keys.all_robots("diag"), self._on(Diag, self._diag)),
-            session.declare_subscriber(keys.all_robots("state"), self._on(State, self._state)),
-            session.liveliness().declare_subscriber(keys.all_alive, self._alive, history=True),
-        ]
-
-    def _alive(self, sample: zenoh.Sample) -> None:
-        rid = Keys.id_of(str(sample.key_expr))
-        if rid is None:
+    def _start_router(self) -> None:
+        if self.cfg.connect is not None:
             return
-        with self.lock:
-            if sample.kind == zenoh.SampleKind.DELETE:
-                self.alive.discard(rid)
-            else:
-                self.alive.add(rid)
+        argv = [sys.executable, "-m", "stack.comm.router", "--listen", self.endpoint, *self._remote]
+        if self.cfg.zenoh_config:
+            argv += ["--config", self.cfg.zenoh_config]
+        self.router = self.spawn("router", argv, self.out / "logs" / "router.log", self.env)
+        try:
+            wait_port(self.endpoint, process=self.router)
+        except TimeoutError as e:
+            self._abort("router", self.router.poll(), f"{e}: {self.router.tail(2)}")
 
-    def wait_alive(self, ids: set[int], timeout: float) -> set[int]:
-        """Wait until every id has a liveliness token; returns the ones still missing."""
-        deadline = time.monotonic() + timeout
-        while True:
-            with self.lock:
-                missing = ids - self.alive
-            if not missing or time.monotonic() > deadline:
-                return missing
-            time.sleep(0.1)
+    def _start_world(self) -> None:
+        cfg = self.cfg
+        argv = [sys.executable, "-m", "stack.sim_bridge", "--scenario", str(self.resolved), "--connect", self.endpoint,
+                "--fleet", self.fleet, "--out", str(self.out), "--wait-agents", f"{cfg.wait_agents_s:g}",
+                *self._remote, *self._zconf]
+        if cfg.realtime:
+            argv.append("--realtime")
+        if cfg.gui:
+            argv.append("--gui")
+        for kind, rid, at in cfg.faults:
+            argv += ["--" + kind, f"{rid}@{at:g}"]
+        for rid, at in cfg.device_faults:
+            argv += ["--device-fault", f"{rid}@{at:g}"]
+        world = self.procs["world"] = self.spawn("world", argv, self.out / "logs" / "world.log", self.env)
+        if any(r.driver != "sim" for r in self.sc.robots) and not cfg.external_agents:
+            # robots on simulated hardware: their drivers go where the world put each device
+            try:
+                self.agents_scenario = _agents_scenario(self.sc, self.out, world, can_log=cfg.can_log)
+            except TimeoutError as e:
+                self._abort("world", world.poll(), f"{e}: {world.tail(3)}")
 
-    def _on(self, kind, handler):
-        def callback(sample: zenoh.Sample) -> None:
-            m = receive(sample, kind, self._bad)
-            if m is not None:
-                with self.lock:
-                    handler(m)
-        return callback
+    def _start_agents(self) -> None:
+        if not self.cfg.external_agents:
+            for r in self.sc.robots:
+                self.procs[f"agent-{r.id}"] = self._start_agent(r.id, f"agent-{r.id}.log")
+            return
+        missing = self.mon.wait_alive(set(self.sc.ids), self.cfg.wait_agents_s)
+        if missing:
+            self._abort("agents", None, f"robots {sorted(missing)} never came up on {self.endpoint} (fleet "
+                                        f"{self.fleet!r}) within {self.cfg.wait_agents_s:g} s")
 
-    def _bad(self, _key: str) -> None:
-        with self.lock:
-            self.malformed += 1
+    def _start_agent(self, rid: int, log_name: str) -> Proc:
+        r = self.sc.robot(rid)
+        argv = [sys.executable, "-m", "stack.agents", "--id", str(r.id), "--scenario", str(self.agents_scenario),
+                "--connect", self.endpoint, "--fleet", self.fleet, "--log-level", "INFO", *self._remote, *self._zconf]
+        if r.role:
+            argv += ["--role", r.role]
+        if not self.cfg.realtime:
+            argv.append("--lockstep")
+        return self.spawn(f"agent {r.id}", argv, self.out / "logs" / log_name, self.env)
 
-    def _clock(self, m: Clock) -> None:
-        self.t, self.step = m.t, m.step
+    # --- serve -----------------------------------------------------------------------------------
 
-    def _status(self, m: WorldStatus) -> None:
-        self.status, self.why = m.state, m.why
+    def serve(self) -> None:
+        """Watch the run until the world is done or gone (or the wall-time limit), then wind it down."""
+        progress = _Progress(self.sc, enabled=self.cfg.progress)
+        try:
+            while not self.tick(progress):
+                pass
+        finally:
+            progress.close()
+        self._wind_down()
 
-    def _diag(self, m: Diag) -> None:
-        old = self.diag.get(m.id)
-        if old is None or m.step >= old.step or m.state == "stopped":
-            self.diag[m.id] = m
+    def tick(self, progress: "_Progress | None" = None) -> bool:
+        """One look at the run (every 50 ms): answer the world's fault requests, notice crashes;
+        True when the run is over."""
+        time.sleep(0.05)
+        t, status, requests = self.mon.take()
+        if progress is not None:
+            progress.update(t, time.monotonic() - self.wall0)
+        for req in requests:  # the world asks, we do, we answer (it waits for the answer)
+            done = [rid for rid in req.ids if self.do_fault(req, rid)]
+            self.ack_pub.put(encode(FaultAck(step=req.step, kind=req.kind, done=done)))
+        self.note_crashes(t, status)
+        if status == "done" or self.procs["world"].poll() is not None:
+            return True
+        if time.monotonic() - self.wall0 > self.wall_limit:
+            self.crashed.append({"process": "world", "exit_code": None, "sim_time_s": t,
+                                 "log_tail": f"no end after {self.wall_limit:.0f} s wall time"})
+            return True
+        return False
 
-    def _state(self, m: State) -> None:
-        self.estimates.setdefault(m.id, []).append((m.step, m.x, m.y))
-        if m.situation:
-            self.situation[m.id] = m.situation
+    def do_fault(self, req: FaultRequest, rid: int) -> bool:
+        """Do one fault the world asked for (one we were told to inject); whether it was done."""
+        name = f"agent-{rid}"
+        if name not in self.procs or (req.kind, rid) not in self.wanted or req.kind not in FAULT_DONE:
+            return False
+        pr = self.procs[name]
+        if req.kind == "kill":
+            pr.killed_at = req.t
+            pr.kill()
+        elif req.kind == "freeze":
+            pr.frozen = True
+            pr.signal(signal.SIGSTOP)
+        else:  # restart: a still running one (e.g. frozen) goes first
+            if pr.poll() is None:
+                pr.killed_at = req.t
+                pr.kill()
+            self.retired.append(pr)
+            n = sum(1 for x in self.retired if x.name == pr.name)
+            self.procs[name] = self._start_agent(rid, f"agent-{rid}.restart{n}.log")
+        self.faults.append({"robot": rid, "kind": FAULT_DONE[req.kind], "at_s": self.wanted[(req.kind, rid)],
+                            "sim_time_s": req.t, "step": req.step})
+        return True
 
-    def close(self) -> None:
-        for sub in self._subs:
-            sub.undeclare()
+    def note_crashes(self, t: float, status: str) -> None:
+        """Every agent that ended by itself before the world was done (not killed, not stopped by us) crashed.
+        A lock-step agent ends with code 0 once the world is done: that news gets 2 s to arrive here."""
+        for name, pr in self.procs.items():
+            rc = pr.poll()
+            if rc == 0 and status != "done":
+                pr.exited_at = pr.exited_at or time.monotonic()
+                if time.monotonic() - pr.exited_at < 2.0:
+                    continue
+            if rc is not None and not pr.asked_to_stop and pr.killed_at is None and name != "world" \
+                    and status != "done" and not self._crashed(pr):
+                self.crashed.append({"process": pr.name, "exit_code": rc, "sim_time_s": t, "log_tail": pr.tail()})
+                self.faults.append({"robot": int(name.split("-")[1]), "kind": "crashed", "exit_code": rc,
+                                    "sim_time_s": t})
+
+    def _crashed(self, pr: Proc) -> bool:
+        return any(c["process"] == pr.name for c in self.crashed)
+
+    def _agents(self) -> list[Proc]:
+        return [pr for name, pr in self.procs.items() if name.startswith("agent-")]
+
+    def _wind_down(self) -> None:
+        """The run is over: agents first (10 s each to command zero and leave), then the world (15 s to write
+        its log); any that ended badly crashed. Then what the agents said (diag, estimates)."""
+        agents = self._agents()
+        stop_all(agents, timeout=10)
+        for pr in agents:
+            rc = pr.poll()
+            if pr.killed_at is None and rc not in (0, None) and not self._crashed(pr):
+                self.crashed.append({"process": pr.name, "exit_code": rc, "sim_time_s": self.mon.t, "log_tail": pr.tail()})
+        world = self.procs["world"]
+        try:
+            wrc = world.wait(15)
+        except subprocess.TimeoutExpired:
+            wrc = world.stop()
+        if wrc != 0:
+            self.crashed.append({"process": "world", "exit_code": wrc, "sim_time_s": self.mon.t, "log_tail": world.tail()})
+        self.mon.close()
+        self.diags, self.estimates = self.mon.results()
+
+    # --- stop ------------------------------------------------------------------------------------
+
+    def stop(self) -> None:
+        """Whatever still runs, in order: agents (SIGTERM, so each commands zero; 5 s), then the world, then our
+        session, then the router. Safe after :meth:`serve`, after a failed :meth:`start` and on errors."""
+        stop_all(self._agents(), timeout=5)
+        for pr in self.procs.values():
+            if pr.poll() is None:
+                pr.stop(5)
+        if self.session is not None:
+            if self.ack_pub is not None:
+                self.ack_pub.undeclare()
+                self.ack_pub = None
+            if self.mon is not None:
+                self.mon.close()
+            self.session.close()
+            self.session = None
+        for pr in [*self.procs.values(), *self.retired]:
+            pr.close()
+        if self.router is not None:
+            self.router.stop(5)
+            self.router.close()
+
+    def run(self) -> tuple[int, dict]:
+        """Start, serve and stop the fleet; (exit code, report). Ctrl-C (or SIGTERM, see
+        :func:`sigterm_as_interrupt`) stops it the same way and propagates."""
+        try:
+            self.start()
+            self.serve()
+        except _Abort:
+            pass
+        finally:
+            self.stop()
+        report = build_report(self.sc, self.out, diags=self.diags, estimates=self.estimates, faults=self.faults,
+                              crashed=self.crashed, wall_time_s=time.monotonic() - self.wall0,
+                              realtime=self.cfg.realtime, plots=self.cfg.plots)
+        code = EXIT_CRASH if self.crashed else (EXIT_OK if report["success"] else EXIT_FAILED)
+        return code, report
 
 
 def run_fleet(cfg: FleetConfig) -> tuple[int, dict]:
     """Run one fleet to its end; returns (exit code, report)."""
-    sc = cfg.scenario
-    out = cfg.out
-    (out / "logs").mkdir(parents=True, exist_ok=True)
-    for name in RUN_OUTPUTS:  # a folder used before: nothing of that run may pass for this one's
-        (out / name).unlink(missing_ok=True)
-    resolved = out / "scenario.resolved.yaml"
-    resolved.write_text(sc.to_yaml())
-    fleet = cfg.fleet or f"run{os.getpid()}"
-    keys = Keys(fleet)
-    endpoint = cfg.connect or cfg.listen or free_tcp_endpoint()
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    # many small processes on few cores: one zenoh worker thread each (fleet_bench: +15 % steps/s at 32 robots)
-    env.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME)
-    py = sys.executable
-    procs: dict[str, _Proc] = {}
-    faults: list[dict] = []
-    crashed: list[dict] = []
-    wall0 = time.monotonic()
-    wall_limit = cfg.wall_timeout_s or max(120.0, sc.duration * (3.0 if cfg.realtime else 2.0) + 60.0)
-
-    remote = ["--allow-remote"] if cfg.allow_remote else []
-    zconf = ["--zenoh-config", cfg.zenoh_config] if cfg.zenoh_config else []
-    router = None
-    if cfg.connect is None:
-        router = _Proc("router", [py, "-m", "stack.comm.router", "--listen", endpoint, *remote]
-                       + (["--config", cfg.zenoh_config] if cfg.zenoh_config else []), out / "logs" / "router.log", env)
-    try:
-        if router is not None:
-            try:
-                _wait_port(endpoint, process=router)
-            except TimeoutError as e:
-                crashed.append({"process": "router", "exit_code": router.poll(), "sim_time_s": 0.0,
-                                "log_tail": f"{e}: {router.tail(2)}"})
-                raise _Abort from None
-        session_cfg = SessionConfig(mode="client", connect=[endpoint], config_file=cfg.zenoh_config,
-                                    allow_remote=cfg.allow_remote)
-        try:
-            session = open_session(session_cfg)
-        except SessionError as e:
-            crashed.append({"process": "orchestrator", "exit_code": None, "sim_time_s": 0.0, "log_tail": str(e)})
-            raise _Abort from None
-        with session:
-            mon = Monitor(session, keys)
-            world_argv = [py, "-m", "stack.sim_bridge", "--scenario", str(resolved), "--connect", endpoint, "--fleet", fleet,
-                          "--out", str(out), "--wait-agents", f"{cfg.wait_agents_s:g}", *remote, *zconf]
-            if cfg.realtime:
-                world_argv.append("--realtime")
-            if cfg.gui:
-                world_argv.append("--gui")
-            for kind, rid, at in cfg.faults:
-                world_argv += ["--" + kind, f"{rid}@{at:g}"]
-            for rid, at in cfg.device_faults:
-                world_argv += ["--device-fault", f"{rid}@{at:g}"]
-            procs["world"] = _Proc("world", world_argv, out / "logs" / "world.log", env)
-            agents_scenario = resolved
-            if any(r.driver != "sim" for r in sc.robots) and not cfg.external_agents:
-                # robots on simulated hardware: their drivers go where the world put each device
-                try:
-                    agents_scenario = _agents_scenario(sc, out, procs["world"], can_log=cfg.can_log)
-                except TimeoutError as e:
-                    crashed.append({"process": "world", "exit_code": procs["world"].poll(), "sim_time_s": 0.0,
-                                    "log_tail": f"{e}: {procs['world'].tail(3)}"})
-                    raise _Abort from None
-
-            def start_agent(r, log_name: str) -> _Proc:
-                argv = [py, "-m", "stack.agents", "--id", str(r.id), "--scenario", str(agents_scenario), "--connect", endpoint,
-                        "--fleet", fleet, "--log-level", "INFO", *remote, *zconf]
-                if r.role:
-                    argv += ["--role", r.role]
-                if not cfg.realtime:
-                    argv.append("--lockstep")
-                return _Proc(f"agent {r.id}", argv, out / "logs" / log_name, env)
-
-            if cfg.external_agents:
-                missing = mon.wait_alive(set(sc.ids), cfg.wait_agents_s)
-                if missing:
-                    crashed.append({"process": "agents", "exit_code": None, "sim_time_s": 0.0,
-                                    "log_tail": f"robots {sorted(missing)} never came up on {endpoint} (fleet "
-                                                f"{fleet!r}) within {cfg.wait_agents_s:g} s"})
-                    raise _Abort
-            else:
-                for r in sc.robots:
-                    procs[f"agent-{r.id}"] = start_agent(r, f"agent-{r.id}.log")
-            ack_pub = session.declare_publisher(keys.world("fault_ack"), congestion_control=zenoh.CongestionControl.BLOCK)
-            wanted = {(kind, rid): at for kind, rid, at in cfg.faults}
-            retired: list[_Proc] = []  # agents replaced by a restart
-            progress = _Progress(sc, enabled=cfg.progress)
-            while True:
-                time.sleep(0.05)
-                with mon.lock:
-                    t, status = mon.t, mon.status
-                    requests, mon.fault_requests[:] = list(mon.fault_requests), []
-                progress.update(t, time.monotonic() - wall0)
-                for req in requests:  # the world asks, we do, we answer (it waits for the answer)
-                    done = []
-                    for rid in req.ids:
-                        name = f"agent-{rid}"
-                        if name not in procs or (req.kind, rid) not in wanted:
-                            continue
-                        pr = procs[name]
-                        if req.kind == "kill":
-                            pr.killed_at = req.t
-                            pr.signal(signal.SIGKILL)
-                            pr.p.wait(5)
-                        elif req.kind == "freeze":
-                            pr.frozen = True
-                            pr.signal(signal.SIGSTOP)
-                        elif req.kind == "restart":
-                            if pr.poll() is None:  # still running (e.g. frozen): that one goes first
-                                pr.killed_at = req.t
-                                if pr.frozen:
-                                    pr.signal(signal.SIGCONT)
-                                pr.signal(signal.SIGKILL)
-                                pr.p.wait(5)
-                            retired.append(pr)
-                            n = sum(1 for x in retired if x.name == pr.name)
-                            procs[name] = start_agent(sc.robot(rid), f"agent-{rid}.restart{n}.log")
-                        else:
-                            continue
-                        done.append(rid)
-                        faults.append({"robot": rid, "kind": {"kill": "killed", "freeze": "frozen", "restart": "restarted"}[req.kind],
-                                       "at_s": wanted[(req.kind, rid)], "sim_time_s": req.t, "step": req.step})
-                    ack_pub.put(encode(FaultAck(step=req.step, kind=req.kind, done=done)))
-                for name, pr in procs.items():
-                    rc = pr.poll()
-                    if rc == 0 and status != "done":
-                        # a lock-step agent ends by itself once the world is done; give that news a moment here
-                        pr.exited_at = pr.exited_at or time.monotonic()
-                        if time.monotonic() - pr.exited_at < 2.0:
-                            continue
-                    if rc is not None and not pr.asked_to_stop and pr.killed_at is None and name != "world" \
-                            and status != "done" and not any(c["process"] == pr.name for c in crashed):
-                        crashed.append({"process": pr.name, "exit_code": rc, "sim_time_s": t, "log_tail": pr.tail()})
-                        faults.append({"robot": int(name.split("-")[1]), "kind": "crashed", "exit_code": rc, "sim_time_s": t})
-                wrc = procs["world"].poll()
-                if status == "done" or wrc is not None:
-                    break
-                if time.monotonic() - wall0 > wall_limit:
-                    crashed.append({"process": "world", "exit_code": None, "sim_time_s": t,
-                                    "log_tail": f"no end after {wall_limit:.0f} s wall time"})
-                    break
-            progress.close()
-            # stop in order: agents (zero velocity on the way out), then the world, then the router
-            agents = [pr for n, pr in procs.items() if n.startswith("agent-")]
-            _stop_all(agents, timeout=10)
-            for pr in retired:
-                pr.close()
-            ack_pub.undeclare()
-            for pr in agents:
-                rc = pr.poll()
-                if pr.killed_at is None and rc not in (0, None) and not any(c["process"] == pr.name for c in crashed):
-                    crashed.append({"process": pr.name, "exit_code": rc, "sim_time_s": mon.t, "log_tail": pr.tail()})
-            world = procs["world"]
-            try:
-                wrc = world.p.wait(15)
-            except subprocess.TimeoutExpired:
-                wrc = world.stop()
-            if wrc != 0:
-                crashed.append({"process": "world", "exit_code": wrc, "sim_time_s": mon.t, "log_tail": world.tail()})
-            mon.close()
-            with mon.lock:
-                diags = dict(mon.diag)
-                estimates = {k: list(v) for k, v in mon.estimates.items()}
-    except _Abort:
-        diags, estimates = {}, {}
-    finally:
-        # agents first (their zero commands reach the world), then the world
-        _stop_all([pr for n, pr in procs.items() if n.startswith("agent-")], timeout=5)
-        for pr in procs.values():
-            if pr.poll() is None:
-                pr.stop(5)
-            pr.close()
-        if router is not None:
-            router.stop(5)
-            router.close()
-
-    wall = time.monotonic() - wall0
-    report = build_report(sc, out, diags=diags, estimates=estimates, faults=faults, crashed=crashed,
-                          wall_time_s=wall, realtime=cfg.realtime, plots=cfg.plots)
-    code = EXIT_CRASH if crashed else (EXIT_OK if report["success"] else EXIT_FAILED)
-    return code, report
-
+    return Fleet(cfg).run()
 
 class _Progress:
     """A live progress line: sim time, leader distance to goal, speed."""

@@ -25,9 +25,9 @@ def _obstacle_patches(ax, obstacles) -> None:
             ax.add_patch(Polygon(corners, color="tab:red", alpha=0.6))
 
 
-def plot_trajectories(sc, z, path: Path) -> None:
-    ids = [int(i) for i in z["ids"]]
-    t, X, Y = z["t"], z["x"], z["y"]
+def plot_trajectories(sc, log, path: Path) -> None:
+    """Every robot's path (the leader dashed), its body and the formation's outline every SNAPSHOT_S."""
+    ids, t, X, Y = log.ids, log.t, log.x, log.y
     fig, ax = plt.subplots(figsize=(10, 6))
     _obstacle_patches(ax, sc.obstacles)
     leader = sc.formation.leader if sc.formation else None
