@@ -49,7 +49,7 @@ def main() -> None:
     print(f"| N_Ab | network step p50 / p99 [us] | act p50 / p99 / max [us] |")
     print("| --- | --- | --- |")
     for n_ab in a.n_ab:
-        robot = replace(base, aina=replace(base.aina, n_ab=n_ab))
+        robot = base.with_config("aina", replace(base.config_for("aina"), n_ab=n_ab))
         pol = make_policy("aina", robot, seed=0)
         rng = np.random.default_rng(0)
         act, net = [], []

@@ -79,11 +79,13 @@ def numpy_run(scenario: Path, coord: str, seed: int, loss: float, fuzzy: dict | 
 
 
 def _with_fuzzy(robot, fuzzy: dict | None):
+    """The robot with these ``robot.fuzzy`` settings over its own (checked by ``main``)."""
     if not fuzzy:
         return robot
-    import dataclasses
+    from stack.policies.fuzzy import FuzzyConfig
+    from stack.settings import read
 
-    return dataclasses.replace(robot, fuzzy=dict(getattr(robot, "fuzzy", None) or {}) | fuzzy)
+    return robot.with_config("fuzzy", read(FuzzyConfig, fuzzy, "robot.fuzzy", robot.config_for("fuzzy")))
 
 
 def _ms(xs):
@@ -125,14 +127,12 @@ def main(argv=None) -> int:
     ap.add_argument("--table-only", action="store_true", help="rewrite OUT/chang_table.md from OUT/chang_table.json, run nothing")
     a = ap.parse_args(argv)
     if a.fuzzy:  # checked as the scenario reader checks robot.fuzzy: one line, exit 2
-        from types import SimpleNamespace
-
-        from stack.policies.fuzzy import make_fuzzy
-        from stack.scenario import LidarConfig
+        from stack.policies.fuzzy import FuzzyConfig
+        from stack.settings import SettingError, read
 
         try:
-            make_fuzzy(SimpleNamespace(fuzzy=dict(a.fuzzy), lidar=LidarConfig(), v_max=1.0, radius=0.3))
-        except (TypeError, ValueError) as e:
+            read(FuzzyConfig, dict(a.fuzzy), "robot.fuzzy")
+        except SettingError as e:
             ap.error(f"--fuzzy: {e}")
     a.out.mkdir(parents=True, exist_ok=True)
     if a.table_only:

@@ -66,16 +66,12 @@ def main(argv=None) -> int:
     if a.seeds < 1:
         ap.error(f"--seeds {a.seeds}: expected at least 1")
     if a.drl:  # checked as the scenario reader checks robot.drl: one line, exit 2
-        from dataclasses import fields
-
         from stack.policies.drl.config import DrlConfig
+        from stack.settings import SettingError, read
 
-        unknown = sorted(set(dict(a.drl)) - {f.name for f in fields(DrlConfig)})
-        if unknown:
-            ap.error(f"--drl {unknown[0]}: unknown field (robot.drl has {', '.join(f.name for f in fields(DrlConfig))})")
         try:
-            DrlConfig(**dict(a.drl))
-        except (TypeError, ValueError) as e:
+            read(DrlConfig, dict(a.drl), "robot.drl")
+        except SettingError as e:
             ap.error(f"--drl: {e}")
     from stack.scenario import ScenarioError, load_scenario
 

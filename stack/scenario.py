@@ -12,15 +12,39 @@ orchestrator) reads the same resolved file, written by the orchestrator next to 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, fields, replace
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-POLICIES = ("pid", "drl", "aina", "fuzzy", "fuzzy-lstm", "qlearn")
-DRIVERS = ("sim", "can", "mavlink", "jackal")
+from . import settings
+from .settings import kind as _kind
+
 ROLES = ("leader", "follower")
+
+
+def policy_names() -> tuple[str, ...]:
+    """Every registered policy (``stack.policies.POLICIES``, out-of-tree ones included)."""
+    from .policies import POLICIES
+
+    return POLICIES.names()
+
+
+def driver_names() -> tuple[str, ...]:
+    """Every registered driver (``stack.drivers.DRIVERS``)."""
+    from .drivers import DRIVERS
+
+    return DRIVERS.names()
+
+
+def __getattr__(name: str):  # POLICIES, DRIVERS: the registries' names, looked up when first asked for
+    if name == "POLICIES":
+        return policy_names()
+    if name == "DRIVERS":
+        return driver_names()
+    raise AttributeError(name)
 
 
 class ScenarioError(ValueError):
@@ -76,39 +100,6 @@ class BaseConfig:
 
 
 @dataclass(frozen=True)
-class PidConfig:
-    """Gains of the go-to-goal PID policy (``stack.policies.pid``)."""
-
-    k_v: float = 0.8  # linear speed per metre of distance [1/s]
-    k_w: float = 2.0  # angular rate per radian of heading error [1/s]
-    k_i: float = 0.0  # integral gain on heading error
-    k_d: float = 0.1  # derivative gain on heading error
-    v_cruise: float = 0.6  # leader's cruise speed as a fraction of v_max
-
-
-@dataclass(frozen=True)
-class AinaConfig:
-    """Parameters of the immune-network policy (``stack.policies.aina``, Deng et al.)."""
-
-    n_ab: int = 36  # N_Ab antibodies, the steering directions 2 pi (s - 1) / N_Ab
-    n_s: int = 8  # N_S virtual range sensors (lidar sectors), like the AmigoBot's eight sonars
-    tau1: float = 0.4  # eq. (6): weight of the leader's steering direction
-    tau2: float = 0.5  # eq. (6): weight of the virtual robot's azimuth
-    tau3: float = 0.1  # eq. (6): weight of the obstacle term
-    mu1: float = 0.5  # eq. (10): the leader's goal weight
-    mu2: float = 0.5  # eq. (10): the leader's obstacle weight
-    k_s: float = 0.5  # eq. (4): natural death coefficient
-    kappa: float = 4.0  # eq. (9) as read here: steepness of the repulsion over the normalised distance
-    k1: float = 0.3  # eq. (13): K1 [1/s]
-    k2: float = 0.08  # eq. (13): K2 [1/s]
-    v_leader: float = 0.6  # the leader's constant speed (section 3.2), a fraction of v_max
-    k_heading: float = 2.0  # steering-direction error -> angular velocity [1/s]
-    robot_detect: float = 1.0  # a neighbour is an obstacle within this clearance [m] ("detection radius")
-    clones: int = 12  # Algorithm 1: clones made each step
-    p_mutation: float = 0.1  # Algorithm 1: probability that one gene (bit) flips
-
-
-@dataclass(frozen=True)
 class RobotConfig:
     id: int
     role: str | None
@@ -125,13 +116,38 @@ class RobotConfig:
     comm_range: float = 10.0
     cmd_timeout: float = 0.5  # driver watchdog: stale command -> zero [s]
     base: BaseConfig = field(default_factory=BaseConfig)
-    pid: PidConfig = field(default_factory=PidConfig)
-    aina: AinaConfig = field(default_factory=AinaConfig)
-    qlearn: dict[str, Any] = field(default_factory=dict)  # ``--policy qlearn`` settings (QlearnPolicyConfig fields)
-    fuzzy: dict[str, Any] = field(default_factory=dict)  # ``--policy fuzzy|fuzzy-lstm`` settings (see _fuzzy_settings)
-    drl: dict[str, Any] = field(default_factory=dict)  # ``--policy drl`` settings (DrlConfig fields)
     goal: tuple[float, float] | None = None
-    driver_params: dict[str, dict[str, Any]] = field(default_factory=dict)
+    driver_params: dict[str, dict[str, Any]] = field(default_factory=dict)  # driver name -> its settings
+    settings: Mapping[str, Any] = field(default_factory=dict)
+    """Policy settings key (``robot.<key>``) -> its resolved config dataclass: every block the scenario
+    gives, and this robot's policy and ``pid`` (situation 1) with their defaults where it gives none."""
+
+    @property
+    def policy_key(self) -> str:
+        """The scenario block of this robot's policy's settings (``fuzzy`` for ``fuzzy-lstm``)."""
+        from .policies import POLICIES
+
+        return POLICIES[self.policy].settings_key
+
+    def config_for(self, key: str):
+        """The resolved config of the policy settings ``robot.<key>`` (its defaults where the scenario has none)."""
+        if key in self.settings:
+            return self.settings[key]
+        from .policies import settings_class
+
+        cls = settings_class(key)
+        if cls is None:
+            raise KeyError(f"no policy takes robot.{key} settings")
+        return cls()
+
+    def with_config(self, key: str, cfg) -> "RobotConfig":
+        """This robot with ``cfg`` as its ``robot.<key>`` settings."""
+        return replace(self, settings=dict(self.settings) | {key: cfg})
+
+    def with_defaults(self, *keys: str) -> "RobotConfig":
+        """This robot with the default config of each of ``keys`` it has no settings for (resolved, so logged)."""
+        missing = {k: self.config_for(k) for k in keys if k not in self.settings}
+        return replace(self, settings=dict(self.settings) | missing) if missing else self
 
 
 @dataclass(frozen=True)
@@ -229,7 +245,7 @@ class SuccessConfig:
 class BenchConfig:
     """What ``stack-fleet bench`` does with this scenario (an addition to the contract's format)."""
 
-    policies: tuple[str, ...] = POLICIES  # the policies this scenario is meant for
+    policies: tuple[str, ...] = field(default_factory=policy_names)  # the policies this scenario is meant for
     reference: str = ""  # the paper's figure this scenario reproduces, as text for the table
 
 
@@ -280,7 +296,7 @@ class _Reader:
             raise self.fail(path, f"expected a mapping, got {_kind(value)}")
         for key in value:
             if key not in allowed:
-                raise self.fail(f"{path}.{key}" if path else str(key), f"unknown field (allowed: {', '.join(sorted(allowed))})")
+                raise self.fail(f"{path}.{key}" if path else str(key), f"unknown field (allowed: {', '.join(sorted(allowed)) or 'none'})")
         return value
 
     def number(self, value: Any, path: str, lo: float | None = None, hi: float | None = None, *, lo_open: bool = False) -> float:
@@ -326,51 +342,50 @@ def _max(rd: "_Reader", v: int, hi: int, path: str) -> int:
     return v
 
 
-def _kind(value: Any) -> str:
-    if value is None:
-        return "nothing"
-    if isinstance(value, bool):
-        return f"a boolean ({value})"
-    if isinstance(value, (int, float)):
-        return f"a number ({value})"
-    if isinstance(value, str):
-        return f"text ({value!r})"
-    if isinstance(value, (list, tuple)):
-        return f"a list of {len(value)}"
-    if isinstance(value, dict):
-        return "a mapping"
-    return type(value).__name__
+_CORE_KEYS = {"radius", "v_max", "w_max", "lidar", "odom_noise", "imu_noise", "fix", "comm_range", "cmd_timeout", "base",
+              "policy", "driver"}
 
 
-_ROBOT_KEYS = {"radius", "v_max", "w_max", "lidar", "odom_noise", "imu_noise", "fix", "comm_range", "cmd_timeout", "base", "pid", "aina", "qlearn", "fuzzy", "drl", "policy", "driver"} | set(DRIVERS)
+def _robot_keys() -> set[str]:
+    """What ``robot:`` and ``robots[i]`` may hold: the core fields, every policy's settings block, every driver's."""
+    from .drivers import DRIVERS
+    from .policies import POLICIES
+
+    return _CORE_KEYS | {p.settings_key for p in POLICIES.values()} | set(DRIVERS)
 
 
 def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict[str, Any]:
-    """Read the per-robot fields shared by ``robot:`` (defaults) and ``robots[i]``."""
+    """Read the per-robot fields shared by ``robot:`` (defaults) and ``robots[i]``, over ``base``."""
     out = dict(base)
-    if "radius" in d:
-        out["radius"] = rd.number(d["radius"], f"{path}.radius", 0.0, 10.0, lo_open=True)
-    if "v_max" in d:
-        out["v_max"] = rd.number(d["v_max"], f"{path}.v_max", 0.0, 20.0, lo_open=True)
-    if "w_max" in d:
-        out["w_max"] = rd.number(d["w_max"], f"{path}.w_max", 0.0, 20.0, lo_open=True)
-    if "comm_range" in d:
-        out["comm_range"] = rd.number(d["comm_range"], f"{path}.comm_range", 0.0, lo_open=True)
-    if "cmd_timeout" in d:
-        out["cmd_timeout"] = rd.number(d["cmd_timeout"], f"{path}.cmd_timeout", 0.0, 10.0, lo_open=True)
+    _limits(rd, d, path, out)
+    _sensor_noise(rd, d, path, out)
+    if "lidar" in d:
+        out["lidar"] = _lidar(rd, d["lidar"], f"{path}.lidar", out.get("lidar", LidarConfig()))
+    if "base" in d:
+        out["base"] = _base(rd, d["base"], f"{path}.base", out.get("base", BaseConfig()))
+    if "policy" in d:
+        out["policy"] = rd.choice(d["policy"], f"{path}.policy", policy_names())
+    if "driver" in d:
+        out["driver"] = rd.choice(d["driver"], f"{path}.driver", driver_names())
+    out["settings"] = _policy_blocks(rd, d, path, out.get("settings", {}))
+    out["driver_params"] = _driver_blocks(rd, d, path, out.get("driver_params", {}))
+    return out
+
+
+def _limits(rd: _Reader, d: dict, path: str, out: dict[str, Any]) -> None:
+    """Size, speed limits, comm range and the command watchdog."""
+    for key, hi in (("radius", 10.0), ("v_max", 20.0), ("w_max", 20.0), ("comm_range", None), ("cmd_timeout", 10.0)):
+        if key in d:
+            out[key] = rd.number(d[key], f"{path}.{key}", 0.0, hi, lo_open=True)
+
+
+def _sensor_noise(rd: _Reader, d: dict, path: str, out: dict[str, Any]) -> None:
+    """``imu_noise``, ``odom_noise`` and the simulated position ``fix``."""
     if "imu_noise" in d:
         m = rd.mapping(d["imu_noise"], f"{path}.imu_noise", {"w_std"})
         out["imu_noise"] = rd.number(m.get("w_std", 0.0), f"{path}.imu_noise.w_std", 0.0)
     if "fix" in d:
-        if d["fix"] is None:
-            out["fix"] = None
-        else:
-            m = rd.mapping(d["fix"], f"{path}.fix", {"rate_hz", "std"})
-            for k in ("rate_hz", "std"):
-                if k not in m:
-                    raise rd.fail(f"{path}.fix.{k}", "missing")
-            out["fix"] = (rd.number(m["rate_hz"], f"{path}.fix.rate_hz", 0.0, 1000.0, lo_open=True),
-                          rd.number(m["std"], f"{path}.fix.std", 0.0, 100.0, lo_open=True))
+        out["fix"] = None if d["fix"] is None else _fix(rd, d["fix"], f"{path}.fix")
     if "odom_noise" in d:
         m = rd.mapping(d["odom_noise"], f"{path}.odom_noise", {"v_std", "w_std"})
         prev = out.get("odom_noise", (0.0, 0.0))
@@ -378,135 +393,70 @@ def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict
             rd.number(m.get("v_std", prev[0]), f"{path}.odom_noise.v_std", 0.0),
             rd.number(m.get("w_std", prev[1]), f"{path}.odom_noise.w_std", 0.0),
         )
-    if "lidar" in d:
-        m = rd.mapping(d["lidar"], f"{path}.lidar", {"beams", "fov_deg", "range", "noise_std"})
-        prev = out.get("lidar", LidarConfig())
-        out["lidar"] = LidarConfig(
-            beams=_max(rd, rd.integer(m.get("beams", prev.beams), f"{path}.lidar.beams", 1), 10_000, f"{path}.lidar.beams"),
-            fov=math.radians(rd.number(m.get("fov_deg", math.degrees(prev.fov)), f"{path}.lidar.fov_deg", 0.0, 360.0, lo_open=True)),
-            range=rd.number(m.get("range", prev.range), f"{path}.lidar.range", 0.0, 100.0, lo_open=True),
-            noise_std=rd.number(m.get("noise_std", prev.noise_std), f"{path}.lidar.noise_std", 0.0),
-        )
-    if "base" in d:
-        m = rd.mapping(d["base"], f"{path}.base", {"track", "wheel_radius", "wheel_accel"})
-        prev = out.get("base", BaseConfig())
-        out["base"] = BaseConfig(
-            track=rd.number(m.get("track", prev.track), f"{path}.base.track", 0.0, 10.0, lo_open=True),
-            wheel_radius=rd.number(m.get("wheel_radius", prev.wheel_radius), f"{path}.base.wheel_radius", 0.0, 5.0, lo_open=True),
-            wheel_accel=rd.number(m.get("wheel_accel", prev.wheel_accel), f"{path}.base.wheel_accel", 0.0, lo_open=True),
-        )
-    if "pid" in d:
-        names = {f for f in PidConfig.__dataclass_fields__}
-        m = rd.mapping(d["pid"], f"{path}.pid", names)
-        prev = out.get("pid", PidConfig())
-        vals = {k: rd.number(v, f"{path}.pid.{k}", 0.0) for k, v in m.items()}
-        if "v_cruise" in vals and vals["v_cruise"] > 1.0:
-            raise rd.fail(f"{path}.pid.v_cruise", f"must be <= 1 (a fraction of v_max), got {vals['v_cruise']:g}")
-        out["pid"] = replace(prev, **vals)
-    if "fuzzy" in d:
-        out["fuzzy"] = dict(out.get("fuzzy", {})) | _fuzzy_settings(rd, d["fuzzy"], f"{path}.fuzzy")
-    if "drl" in d:
-        out["drl"] = dict(out.get("drl", {})) | _drl_settings(rd, d["drl"], f"{path}.drl")
-    if "qlearn" in d:
-        out["qlearn"] = dict(out.get("qlearn", {})) | _qlearn_settings(rd, d["qlearn"], f"{path}.qlearn")
-    if "aina" in d:
-        prev = out.get("aina", AinaConfig())
-        m = rd.mapping(d["aina"], f"{path}.aina", set(AinaConfig.__dataclass_fields__))
-        vals: dict[str, Any] = {}
-        for k, v in m.items():
-            if isinstance(getattr(prev, k), int):
-                vals[k] = _max(rd, rd.integer(v, f"{path}.aina.{k}", 1), 3600, f"{path}.aina.{k}")
-            else:
-                vals[k] = rd.number(v, f"{path}.aina.{k}", 0.0, 1.0 if k in ("p_mutation", "v_leader") else None)
-        a = replace(prev, **vals)
-        if abs(a.tau1 + a.tau2 + a.tau3 - 1.0) > 1e-6:
-            raise rd.fail(f"{path}.aina", f"tau1 + tau2 + tau3 must be 1 (eq. 6), got {a.tau1 + a.tau2 + a.tau3:g}")
-        if abs(a.mu1 + a.mu2 - 1.0) > 1e-6:
-            raise rd.fail(f"{path}.aina", f"mu1 + mu2 must be 1 (eq. 10), got {a.mu1 + a.mu2:g}")
-        out["aina"] = a
-    if "policy" in d:
-        out["policy"] = rd.choice(d["policy"], f"{path}.policy", POLICIES)
-    if "driver" in d:
-        out["driver"] = rd.choice(d["driver"], f"{path}.driver", DRIVERS)
-    params = dict(out.get("driver_params", {}))
-    for name in DRIVERS:
-        if name in d:
-            params[name] = _driver_settings(rd, name, d[name], f"{path}.{name}")
-    out["driver_params"] = params
+
+
+def _fix(rd: _Reader, value: Any, path: str) -> tuple[float, float]:
+    m = rd.mapping(value, path, {"rate_hz", "std"})
+    for k in ("rate_hz", "std"):
+        if k not in m:
+            raise rd.fail(f"{path}.{k}", "missing")
+    return (rd.number(m["rate_hz"], f"{path}.rate_hz", 0.0, 1000.0, lo_open=True),
+            rd.number(m["std"], f"{path}.std", 0.0, 100.0, lo_open=True))
+
+
+def _lidar(rd: _Reader, value: Any, path: str, prev: LidarConfig) -> LidarConfig:
+    m = rd.mapping(value, path, {"beams", "fov_deg", "range", "noise_std"})
+    return LidarConfig(
+        beams=_max(rd, rd.integer(m.get("beams", prev.beams), f"{path}.beams", 1), 10_000, f"{path}.beams"),
+        fov=math.radians(rd.number(m.get("fov_deg", math.degrees(prev.fov)), f"{path}.fov_deg", 0.0, 360.0, lo_open=True)),
+        range=rd.number(m.get("range", prev.range), f"{path}.range", 0.0, 100.0, lo_open=True),
+        noise_std=rd.number(m.get("noise_std", prev.noise_std), f"{path}.noise_std", 0.0),
+    )
+
+
+def _base(rd: _Reader, value: Any, path: str, prev: BaseConfig) -> BaseConfig:
+    m = rd.mapping(value, path, {"track", "wheel_radius", "wheel_accel"})
+    return BaseConfig(
+        track=rd.number(m.get("track", prev.track), f"{path}.track", 0.0, 10.0, lo_open=True),
+        wheel_radius=rd.number(m.get("wheel_radius", prev.wheel_radius), f"{path}.wheel_radius", 0.0, 5.0, lo_open=True),
+        wheel_accel=rd.number(m.get("wheel_accel", prev.wheel_accel), f"{path}.wheel_accel", 0.0, lo_open=True),
+    )
+
+
+def _policy_blocks(rd: _Reader, d: dict, path: str, base: Mapping[str, Any]) -> dict[str, Any]:
+    """``robot.<key>`` of every policy: its config dataclass, each block over the defaults' (``base``)."""
+    from .policies import POLICIES
+
+    out = dict(base)
+    for key in dict.fromkeys(p.settings_key for p in POLICIES.values()):
+        if key in d:
+            try:
+                out[key] = settings.read(POLICIES.by_key(key).config_class(), d[key], f"{path}.{key}", out.get(key))
+            except settings.SettingError as e:
+                raise rd.fail(e.path, e.what) from None
     return out
 
 
-def _qlearn_settings(rd: _Reader, value: Any, path: str) -> dict[str, Any]:
-    """``qlearn:`` (Fan 2021 in the fleet): fields of ``QlearnPolicyConfig``, each of its default's kind;
-    lengths, gains and counts positive (``evidence_min`` is a log-odds floor: any number below 0)."""
-    from .policies.qlearn import QlearnPolicyConfig  # lazy: numpy-only, but not needed by other scenarios
+def _driver_blocks(rd: _Reader, d: dict, path: str, base: Mapping[str, dict]) -> dict[str, dict[str, Any]]:
+    """``robot.<driver>`` of every driver: a dict of its config dataclass's fields (each block over the
+    defaults'), checked by building that dataclass; the driver builds its own from it (``Driver._configure``)."""
+    from .drivers import DRIVERS
 
-    defaults = {f.name: f.default for f in fields(QlearnPolicyConfig)}
-    m = rd.mapping(value or {}, path, set(defaults))
-    out: dict[str, Any] = {}
-    for k, v in m.items():
-        p, default = f"{path}.{k}", defaults[k]
-        if isinstance(default, bool):
-            out[k] = rd.boolean(v, p)
-        elif isinstance(default, int):
-            out[k] = _max(rd, rd.integer(v, p, 1), 100_000, p)
-        elif k == "evidence_min":
-            out[k] = rd.number(v, p, hi=0.0)
-        else:
-            out[k] = rd.number(v, p, 0.0, lo_open=True)
+    out = dict(base)
+    for name, rec in DRIVERS.items():
+        if name not in d:
+            continue
+        p = f"{path}.{name}"
+        allowed = settings.keys(rec.config_class()) if rec.config else set()
+        merged = dict(out.get(name, {})) | dict(rd.mapping(d[name] or {}, p, allowed))
+        if merged:
+            try:
+                cfg = settings.read(rec.config_class(), merged, p)
+            except settings.SettingError as e:
+                raise rd.fail(e.path, e.what) from None
+            merged = {k: getattr(cfg, k) for k in merged}
+        out[name] = merged
     return out
-
-
-def _fuzzy_settings(rd: _Reader, value: Any, path: str) -> dict[str, Any]:
-    """``fuzzy:`` (Chang 2020): ``coordinator`` (flc, lstm, none: the paper's "no MRC"), ``params`` (a JSON
-    of trained parameters) and the fields of the policy's ``FuzzyConfig``, ``MrcConfig``, ``SupervisorConfig``;
-    checked by building the policy's config."""
-    from types import SimpleNamespace
-
-    from .policies.fuzzy.mrc import MrcConfig
-    from .policies.fuzzy.policy import FuzzyConfig, make_fuzzy
-    from .policies.fuzzy.rbc import SupervisorConfig
-
-    allowed = {"params"} | {f.name for c in (FuzzyConfig, MrcConfig, SupervisorConfig) for f in fields(c)} - {"mrc", "supervisor"}
-    m = dict(rd.mapping(value or {}, path, allowed))
-    if "params" in m and not Path(str(m["params"])).is_file():
-        raise rd.fail(f"{path}.params", f"no such file: {m['params']}")
-    try:
-        make_fuzzy(SimpleNamespace(fuzzy=m, lidar=LidarConfig(), v_max=1.0, radius=0.5))
-    except (TypeError, ValueError, KeyError) as e:
-        raise rd.fail(path, str(e)) from None
-    return m
-
-
-def _drl_settings(rd: _Reader, value: Any, path: str) -> dict[str, Any]:
-    """``drl:`` (Bai 2022): the fields of ``DrlConfig`` (weights, shield, shield_horizon, shield_margin),
-    checked by building it (no torch import)."""
-    from .policies.drl.config import DrlConfig
-
-    m = dict(rd.mapping(value or {}, path, {f.name for f in fields(DrlConfig)}))
-    try:
-        DrlConfig(**m)
-    except (TypeError, ValueError) as e:
-        raise rd.fail(path, str(e)) from None
-    return m
-
-
-def _driver_settings(rd: _Reader, name: str, value: Any, path: str) -> dict[str, Any]:
-    """A robot's ``<driver>:`` block: the fields of that driver's config dataclass, checked by it."""
-    from .drivers import UnknownDriver, driver_class  # lazy: python-can / pymavlink only when a block is given
-
-    try:
-        cls = driver_class(name).config_class
-    except UnknownDriver:
-        cls = None
-    allowed = {f.name for f in fields(cls)} if cls is not None else set()
-    m = dict(rd.mapping(value or {}, path, allowed))
-    if cls is not None:
-        try:
-            cls(**m)
-        except (TypeError, ValueError) as e:
-            raise rd.fail(path, str(e)) from None
-    return m
 
 
 def _slots(rd: _Reader, slots_d: Any, path: str, seen: set[int], leader: int) -> dict[int, Slot]:
@@ -572,23 +522,40 @@ def parse_scenario(data: Any, source: str = "<scenario>") -> Scenario:
     for k in ("dt", "robots"):
         if k not in d:
             raise rd.fail(k, "missing")
-    name = str(d.get("name", Path(source).stem))
     seed = rd.integer(d.get("seed", 0), "seed", 0)
     dt = rd.number(d["dt"], "dt", 0.0, 10.0, lo_open=True)
     duration = rd.number(d.get("duration", 120.0), "duration", 0.0, lo_open=True)
     if duration < dt:
         raise rd.fail("duration", f"must be at least one step (dt = {dt:g}), got {duration:g}")
+    obstacles = _world(rd, d.get("world", {}) or {})
+    defaults = _robot_fields(rd, rd.mapping(d.get("robot", {}) or {}, "robot", _robot_keys()), "robot", {})
+    comm = _comm(rd, d.get("comm", {}) or {})
+    coordination = rd.choice(d["coordination"], "coordination", ("arrival_time",)) if "coordination" in d else None
+    robots = _robots(rd, d["robots"], defaults)
+    formation = None
+    if d.get("formation") is not None:
+        formation = _formation(rd, d["formation"], {r.id for r in robots}, duration)
+        robots = _formation_roles(rd, formation, robots)
+    elif coordination == "arrival_time":
+        _arrival_peers(rd, robots)
+    else:
+        raise rd.fail("formation", "missing (or give every robot a goal and coordination: arrival_time)")
+    return Scenario(name=str(d.get("name", Path(source).stem)), seed=seed, dt=dt, duration=duration, obstacles=obstacles,
+                    robots=tuple(robots), comm=comm, formation=formation, coordination=coordination,
+                    success=_success(rd, d.get("success", {}) or {}), bench=_bench(rd, d.get("bench")),
+                    source=source, raw=data)
 
-    world = rd.mapping(d.get("world", {}) or {}, "world", {"obstacles"})
+
+def _world(rd: _Reader, value: Any) -> tuple[Obstacle, ...]:
+    world = rd.mapping(value, "world", {"obstacles"})
     obs_list = world.get("obstacles", []) or []
     if not isinstance(obs_list, list):
         raise rd.fail("world.obstacles", f"expected a list, got {_kind(obs_list)}")
-    obstacles = tuple(_obstacle(rd, o, f"world.obstacles[{i}]") for i, o in enumerate(obs_list))
+    return tuple(_obstacle(rd, o, f"world.obstacles[{i}]") for i, o in enumerate(obs_list))
 
-    defaults = rd.mapping(d.get("robot", {}) or {}, "robot", _ROBOT_KEYS)
-    base_fields = _robot_fields(rd, defaults, "robot", {})
 
-    comm_d = rd.mapping(d.get("comm", {}) or {}, "comm", {"loss", "burst", "latency_ms", "jitter_ms"})
+def _comm(rd: _Reader, value: Any) -> CommConfig:
+    comm_d = rd.mapping(value, "comm", {"loss", "burst", "latency_ms", "jitter_ms"})
     burst = None
     if comm_d.get("burst") is not None:
         b = rd.mapping(comm_d["burst"], "comm.burst", {"p_good_bad", "p_bad_good", "loss_bad", "loss_good"})
@@ -598,108 +565,120 @@ def parse_scenario(data: Any, source: str = "<scenario>") -> Scenario:
         burst = BurstConfig(**{k: rd.number(v, f"comm.burst.{k}", 0.0, 1.0) for k, v in b.items()})
         if burst.p_bad_good == 0.0:
             raise rd.fail("comm.burst.p_bad_good", "must be > 0, or the channel never leaves the bad state")
-    comm = CommConfig(
+    return CommConfig(
         loss=rd.number(comm_d.get("loss", 0.0), "comm.loss", 0.0, 1.0),
         burst=burst,
         latency_ms=rd.number(comm_d.get("latency_ms", 0.0), "comm.latency_ms", 0.0, 60_000.0),
         jitter_ms=rd.number(comm_d.get("jitter_ms", 0.0), "comm.jitter_ms", 0.0, 60_000.0),
     )
 
-    robots_d = d["robots"]
+
+def _robots(rd: _Reader, robots_d: Any, defaults: dict[str, Any]) -> list[RobotConfig]:
     if not isinstance(robots_d, list) or not robots_d:
         raise rd.fail("robots", f"expected a non-empty list, got {_kind(robots_d)}")
     robots: list[RobotConfig] = []
     seen: set[int] = set()
-    coordination = None
-    if "coordination" in d:
-        coordination = rd.choice(d["coordination"], "coordination", ("arrival_time",))
     for i, r in enumerate(robots_d):
-        p = f"robots[{i}]"
-        r = rd.mapping(r, p, _ROBOT_KEYS | {"id", "role", "pose", "goal"})
-        if "id" not in r:
-            raise rd.fail(f"{p}.id", "missing")
-        rid = rd.integer(r["id"], f"{p}.id", 0)
-        if rid > 65535:
-            raise rd.fail(f"{p}.id", f"must be <= 65535, got {rid}")
-        if rid in seen:
-            raise rd.fail(f"{p}.id", f"duplicate id {rid}")
-        seen.add(rid)
-        if "pose" not in r:
-            raise rd.fail(f"{p}.pose", "missing")
-        x, y, yaw_deg = rd.vector(r["pose"], f"{p}.pose", 3)
-        role = rd.choice(r["role"], f"{p}.role", ROLES) if "role" in r else None
-        goal = rd.vector(r["goal"], f"{p}.goal", 2) if "goal" in r else None
-        fields_ = _robot_fields(rd, r, p, base_fields)
-        robots.append(RobotConfig(id=rid, role=role, pose=(x, y, math.radians(yaw_deg)), goal=goal, **fields_))
+        robot = _robot(rd, r, f"robots[{i}]", defaults)
+        if robot.id in seen:
+            raise rd.fail(f"robots[{i}].id", f"duplicate id {robot.id}")
+        seen.add(robot.id)
+        robots.append(robot)
+    return robots
 
-    formation = None
-    if "formation" in d and d["formation"] is not None:
-        f = rd.mapping(d["formation"], "formation", {"leader", "goal", "slots", "d_safe", "schedule"})
-        for k in ("leader", "goal"):
-            if k not in f:
-                raise rd.fail(f"formation.{k}", "missing")
-        leader = rd.integer(f["leader"], "formation.leader", 0)
-        if leader not in seen:
-            raise rd.fail("formation.leader", f"no robot with id {leader}")
-        slots = _slots(rd, f.get("slots", {}) or {}, "formation.slots", seen, leader)
-        schedule: list[SlotChange] = []
-        sched = f.get("schedule") or []
-        if not isinstance(sched, list):
-            raise rd.fail("formation.schedule", f"expected a list of {{at, slots}}, got {_kind(sched)}")
-        for i, e in enumerate(sched):
-            ep = f"formation.schedule[{i}]"
-            e = rd.mapping(e, ep, {"at", "slots"})
-            for k in ("at", "slots"):
-                if k not in e:
-                    raise rd.fail(f"{ep}.{k}", "missing")
-            at = rd.number(e["at"], f"{ep}.at", 0.0, duration)
-            if schedule and at <= schedule[-1].at:
-                raise rd.fail(f"{ep}.at", f"must be later than the previous change ({schedule[-1].at:g} s), got {at:g}")
-            ch = _slots(rd, e["slots"], f"{ep}.slots", seen, leader)
-            if not ch:
-                raise rd.fail(f"{ep}.slots", "empty: name at least one follower")
-            schedule.append(SlotChange(at=at, slots=ch))
-        formation = FormationConfig(
-            leader=leader,
-            goal=rd.vector(f["goal"], "formation.goal", 2),
-            slots=slots,
-            d_safe=rd.number(f.get("d_safe", 3.0), "formation.d_safe", 0.0),
-            schedule=tuple(schedule),
-        )
-        for i, r in enumerate(robots):
-            want = "leader" if r.id == leader else "follower"
-            if r.role is None:
-                robots[i] = replace(r, role=want)
-            elif r.role != want:
-                raise rd.fail(f"robots[{i}].role", f"robot {r.id} is {r.role} but formation.leader is {leader}")
-            if want == "follower" and r.id not in slots:
-                raise rd.fail("formation.slots", f"follower {r.id} has no slot")
-    elif coordination == "arrival_time":
-        for i, r in enumerate(robots):
-            if r.goal is None:
-                raise rd.fail(f"robots[{i}].goal", "an arrival-time task needs a goal for every robot")
-            if r.role is not None:
-                raise rd.fail(f"robots[{i}].role", "an arrival-time task has peers only: leave role out")
-    else:
-        raise rd.fail("formation", "missing (or give every robot a goal and coordination: arrival_time)")
 
-    s = rd.mapping(d.get("success", {}) or {}, "success", {"goal_tolerance", "max_time", "no_collisions"})
-    success = SuccessConfig(
+def _robot(rd: _Reader, r: Any, p: str, defaults: dict[str, Any]) -> RobotConfig:
+    """One ``robots[i]``: id, pose, role and goal, then its own fields over the ``robot:`` defaults."""
+    r = rd.mapping(r, p, _robot_keys() | {"id", "role", "pose", "goal"})
+    for k in ("id", "pose"):
+        if k not in r:
+            raise rd.fail(f"{p}.{k}", "missing")
+    rid = _max(rd, rd.integer(r["id"], f"{p}.id", 0), 65535, f"{p}.id")
+    x, y, yaw_deg = rd.vector(r["pose"], f"{p}.pose", 3)
+    role = rd.choice(r["role"], f"{p}.role", ROLES) if "role" in r else None
+    goal = rd.vector(r["goal"], f"{p}.goal", 2) if "goal" in r else None
+    fields_ = _robot_fields(rd, r, p, defaults)
+    robot = RobotConfig(id=rid, role=role, pose=(x, y, math.radians(yaw_deg)), goal=goal, **fields_)
+    return robot.with_defaults("pid", robot.policy_key)
+
+
+def _formation(rd: _Reader, value: Any, seen: set[int], duration: float) -> FormationConfig:
+    f = rd.mapping(value, "formation", {"leader", "goal", "slots", "d_safe", "schedule"})
+    for k in ("leader", "goal"):
+        if k not in f:
+            raise rd.fail(f"formation.{k}", "missing")
+    leader = rd.integer(f["leader"], "formation.leader", 0)
+    if leader not in seen:
+        raise rd.fail("formation.leader", f"no robot with id {leader}")
+    return FormationConfig(
+        leader=leader,
+        goal=rd.vector(f["goal"], "formation.goal", 2),
+        slots=_slots(rd, f.get("slots", {}) or {}, "formation.slots", seen, leader),
+        d_safe=rd.number(f.get("d_safe", 3.0), "formation.d_safe", 0.0),
+        schedule=_schedule(rd, f.get("schedule") or [], seen, leader, duration),
+    )
+
+
+def _schedule(rd: _Reader, sched: Any, seen: set[int], leader: int, duration: float) -> tuple[SlotChange, ...]:
+    if not isinstance(sched, list):
+        raise rd.fail("formation.schedule", f"expected a list of {{at, slots}}, got {_kind(sched)}")
+    schedule: list[SlotChange] = []
+    for i, e in enumerate(sched):
+        ep = f"formation.schedule[{i}]"
+        e = rd.mapping(e, ep, {"at", "slots"})
+        for k in ("at", "slots"):
+            if k not in e:
+                raise rd.fail(f"{ep}.{k}", "missing")
+        at = rd.number(e["at"], f"{ep}.at", 0.0, duration)
+        if schedule and at <= schedule[-1].at:
+            raise rd.fail(f"{ep}.at", f"must be later than the previous change ({schedule[-1].at:g} s), got {at:g}")
+        ch = _slots(rd, e["slots"], f"{ep}.slots", seen, leader)
+        if not ch:
+            raise rd.fail(f"{ep}.slots", "empty: name at least one follower")
+        schedule.append(SlotChange(at=at, slots=ch))
+    return tuple(schedule)
+
+
+def _formation_roles(rd: _Reader, formation: FormationConfig, robots: list[RobotConfig]) -> list[RobotConfig]:
+    """Every robot's role from ``formation.leader`` (a given role must agree); every follower has a slot."""
+    out = []
+    for i, r in enumerate(robots):
+        want = "leader" if r.id == formation.leader else "follower"
+        if r.role is not None and r.role != want:
+            raise rd.fail(f"robots[{i}].role", f"robot {r.id} is {r.role} but formation.leader is {formation.leader}")
+        if want == "follower" and r.id not in formation.slots:
+            raise rd.fail("formation.slots", f"follower {r.id} has no slot")
+        out.append(replace(r, role=want) if r.role is None else r)
+    return out
+
+
+def _arrival_peers(rd: _Reader, robots: list[RobotConfig]) -> None:
+    for i, r in enumerate(robots):
+        if r.goal is None:
+            raise rd.fail(f"robots[{i}].goal", "an arrival-time task needs a goal for every robot")
+        if r.role is not None:
+            raise rd.fail(f"robots[{i}].role", "an arrival-time task has peers only: leave role out")
+
+
+def _success(rd: _Reader, value: Any) -> SuccessConfig:
+    s = rd.mapping(value, "success", {"goal_tolerance", "max_time", "no_collisions"})
+    return SuccessConfig(
         goal_tolerance=rd.number(s.get("goal_tolerance", 0.5), "success.goal_tolerance", 0.0, lo_open=True),
         max_time=rd.number(s["max_time"], "success.max_time", 0.0, lo_open=True) if "max_time" in s else None,
         no_collisions=rd.boolean(s.get("no_collisions", True), "success.no_collisions"),
     )
-    bench = BenchConfig()
-    if d.get("bench") is not None:
-        b = rd.mapping(d["bench"], "bench", {"policies", "reference"})
-        pols = b.get("policies", list(POLICIES))
-        if not isinstance(pols, list) or not pols:
-            raise rd.fail("bench.policies", f"expected a non-empty list, got {_kind(pols)}")
-        bench = BenchConfig(policies=tuple(rd.choice(x, f"bench.policies[{i}]", POLICIES) for i, x in enumerate(pols)),
-                            reference=str(b.get("reference", "")))
-    return Scenario(name=name, seed=seed, dt=dt, duration=duration, obstacles=obstacles, robots=tuple(robots),
-                    comm=comm, formation=formation, coordination=coordination, success=success, bench=bench,
-                    source=source, raw=data)
+
+
+def _bench(rd: _Reader, value: Any) -> BenchConfig:
+    if value is None:
+        return BenchConfig()
+    b = rd.mapping(value, "bench", {"policies", "reference"})
+    names = policy_names()
+    pols = b.get("policies", list(names))
+    if not isinstance(pols, list) or not pols:
+        raise rd.fail("bench.policies", f"expected a non-empty list, got {_kind(pols)}")
+    return BenchConfig(policies=tuple(rd.choice(x, f"bench.policies[{i}]", names) for i, x in enumerate(pols)),
+                       reference=str(b.get("reference", "")))
 
 
 def load_scenario(path: str | Path) -> Scenario:
@@ -740,12 +719,12 @@ def with_overrides(sc: Scenario, *, policy: str | None = None, driver: str | Non
     if burst_loss is not None:
         raw["comm"] = dict(raw.get("comm") or {}) | {"loss": 0.0, "burst": burst_with_mean(burst_loss)}
     if policy is not None:
-        _check_flag("--policy", policy, POLICIES)
+        _check_flag("--policy", policy, policy_names())
         for r in raw["robots"]:
             r["policy"] = policy
         raw["robot"] = dict(raw.get("robot") or {}) | {"policy": policy}
     if driver is not None:
-        _check_flag("--driver", driver, DRIVERS)
+        _check_flag("--driver", driver, driver_names())
         for r in raw["robots"]:
             r["driver"] = driver
     if loss is not None or latency_ms is not None:

@@ -10,7 +10,8 @@ from conftest import SCENARIOS, run_fleet, scenario_dict, write_scenario
 
 from stack.policies import Observation, make_policy
 from stack.policies.aina import (Antigen, ImmuneNetwork, lobe, lyapunov_derivative, sectors, tracking_speed)
-from stack.scenario import AinaConfig, ScenarioError, parse_scenario
+from stack.policies.aina import AinaConfig
+from stack.scenario import ScenarioError, parse_scenario
 
 SENSORS = np.radians(np.linspace(-78.75, 78.75, 8))  # eight sectors over a 180-degree lidar
 
@@ -149,7 +150,7 @@ def _robot(cfg, role="follower"):
     sc = parse_scenario(scenario_dict())
     from dataclasses import replace
 
-    return replace(sc.robot(1), role=role, aina=cfg, v_max=0.5)
+    return replace(sc.robot(1).with_config("aina", cfg), role=role, v_max=0.5)
 
 
 # --- scenario keys ----------------------------------------------------------------------------
@@ -166,7 +167,7 @@ def test_aina_settings_are_checked():
     with pytest.raises(ScenarioError, match=r"robot.aina.tau: unknown field"):
         parse_scenario(d, "s.yaml")
     d["robot"]["aina"] = {"n_ab": 72, "v_leader": 0.3}
-    assert parse_scenario(d).robot(0).aina.n_ab == 72
+    assert parse_scenario(d).robot(0).config_for("aina").n_ab == 72
 
 
 # --- in the fleet -----------------------------------------------------------------------------

@@ -344,28 +344,27 @@ def test_phase2_fitness_eq21_as_read_and_nobody_arriving_is_the_worst(monkeypatc
 
 
 def test_factory_robot_fuzzy_settings():
-    from types import SimpleNamespace
+    from conftest import scenario_dict
+    from stack.scenario import ScenarioError, parse_scenario
 
-    from stack.scenario import load_scenario
-
-    r = load_scenario("scenarios/chang-three.yaml").robots[0]
-    robot = SimpleNamespace(**{k: getattr(r, k) for k in ("lidar", "v_max", "radius")},
-                            fuzzy={"coordinator": "none", "target": [1, 2], "v_min": 0.3, "c_min": 50})
-    pol = make_fuzzy(robot)
+    d = scenario_dict()
+    d["robot"]["fuzzy"] = {"coordinator": "none", "target": [1, 2], "v_min": 0.3, "c_min": 50}
+    pol = make_fuzzy(parse_scenario(d).robots[0])
     assert pol.name == "fuzzy-nomrc" and pol.cfg.target == (1, 2) and pol.mrc.cfg.v_min == 0.3
     assert pol.rbc.supervisor.cfg.c_min == 50
-    robot.fuzzy = {"nonsense": 1}
-    with pytest.raises(ValueError):
-        make_fuzzy(robot)
+    d["robot"]["fuzzy"] = {"nonsense": 1}
+    with pytest.raises(ScenarioError, match="robot.fuzzy.nonsense: unknown field"):
+        parse_scenario(d)
 
 
 @pytest.mark.parametrize("key, value, words", [
-    ("detour_radius", -1, "detour_radius: expected a number >= 0, got -1"),
-    ("guard", "x", "guard: expected a number >= 0, got 'x'"),
-    ("t_brake", 0, "t_brake: expected a number > 0, got 0"),
-    ("c_min", 1.5, "c_min: expected an integer >= 0, got 1.5"),
-    ("v_min", float("nan"), "v_min: expected a number >= 0, got nan"),
-    ("terminal_match", 1, "terminal_match: expected true or false, got 1"),
+    ("detour_radius", -1, "detour_radius: must be >= 0, got -1"),
+    ("guard", "x", "guard: expected a number, got text ('x')"),
+    ("t_brake", 0, "t_brake: must be > 0, got 0"),
+    ("c_min", 1.5, "c_min: expected an integer, got a number (1.5)"),
+    ("v_min", float("nan"), "v_min: expected a finite number, got nan"),
+    ("v_min", -0.1, "v_min: must be >= 0, got -0.1"),
+    ("terminal_match", 1, "terminal_match: expected true or false, got a number (1)"),
 ])
 def test_robot_fuzzy_values_are_checked_where_the_scenario_is_read(key, value, words):
     """A bad value in robot.fuzzy (FuzzyConfig, MrcConfig or SupervisorConfig) is one line naming it,
@@ -377,5 +376,5 @@ def test_robot_fuzzy_values_are_checked_where_the_scenario_is_read(key, value, w
     d["robot"]["fuzzy"] = {key: value}
     with pytest.raises(ScenarioError) as e:
         parse_scenario(d, "s.yaml")
-    assert str(e.value) == f"s.yaml: robot.fuzzy: {words}"
+    assert str(e.value) == f"s.yaml: robot.fuzzy.{words}"
 

@@ -58,8 +58,14 @@ BAD = [
     (lambda d: d.pop("formation"), "formation: missing"),
     (lambda d: d["success"].__setitem__("no_collisions", "yes"), "success.no_collisions: expected true or false"),
     (lambda d: d["robot"].__setitem__("drl", {"shields": True}), "robot.drl.shields: unknown field"),
-    (lambda d: d["robot"].__setitem__("drl", {"shield": "yes"}), "robot.drl: shield: expected true or false"),
-    (lambda d: d["robots"][1].__setitem__("drl", {"weights": "nope.pt"}), "robots[1].drl: weights: no such file: nope.pt"),
+    (lambda d: d["robot"].__setitem__("drl", {"shield": "yes"}), "robot.drl.shield: expected true or false, got text ('yes')"),
+    (lambda d: d["robots"][1].__setitem__("drl", {"weights": "nope.pt"}), "robots[1].drl.weights: no such file: nope.pt"),
+    (lambda d: d["robots"][2].__setitem__("qlearn", {"cell": -0.5}), "robots[2].qlearn.cell: must be > 0, got -0.5"),
+    (lambda d: d["robot"].__setitem__("pid", {"v_cruise": 1.5}), "robot.pid.v_cruise: must be <= 1, got 1.5"),
+    (lambda d: d["robot"].__setitem__("fuzzy", {"coordinator": "central"}),
+     "robot.fuzzy.coordinator: expected one of flc, lstm, none, got 'central'"),
+    (lambda d: d["robot"].__setitem__("fuzzy", {"target": [1, "x"]}), "robot.fuzzy.target[1]: expected a number, got text ('x')"),
+    (lambda d: d["robot"].__setitem__("sim", {"port": 1}), "robot.sim.port: unknown field (allowed: none)"),
 ]
 
 
@@ -165,3 +171,23 @@ def test_formation_schedule_switches_slots_in_time():
     at5 = f.slots_at(5.0)
     assert at5[1].L == 1.0 and at5[2] == f.slots[2] and at5[3] == f.slots[3]  # a change keeps the followers it leaves out
     assert f.final_slots[1].L == 3.0 and f.final_slots[2].L == 2.0 and f.final_slots[3] == f.slots[3]
+
+
+def test_plugin_blocks_merge_per_robot_over_the_defaults():
+    from stack.policies.drl.config import DrlConfig
+
+    d = scenario_dict()
+    d["robot"]["qlearn"] = {"cell": 0.25, "n_headings": 8}
+    d["robot"]["can"] = {"channel": "vcan0"}
+    d["robots"][1] |= {"policy": "qlearn", "qlearn": {"n_headings": 12}, "can": {"node_left": 2}}
+    d["robots"][3]["policy"] = "fuzzy-lstm"
+    sc = parse_scenario(d)
+    q0, q1 = sc.robot(0).config_for("qlearn"), sc.robot(1).config_for("qlearn")
+    assert (q0.cell, q0.n_headings) == (0.25, 8) and (q1.cell, q1.n_headings) == (0.25, 12)
+    assert sc.robot(2).config_for("drl") == DrlConfig() and "drl" not in sc.robot(2).settings  # defaults when absent
+    assert set(sc.robot(1).settings) == {"pid", "qlearn"} and set(sc.robot(3).settings) == {"pid", "qlearn", "fuzzy"}
+    assert "QlearnPolicyConfig(cell=0.25" in repr(sc.robot(1))  # the resolved config, as the agent logs its robot
+    assert sc.robot(0).driver_params["can"] == {"channel": "vcan0"}
+    assert sc.robot(1).driver_params["can"] == {"channel": "vcan0", "node_left": 2}
+    with pytest.raises(KeyError, match="no policy takes robot.lidar settings"):
+        sc.robot(0).config_for("lidar")

@@ -11,7 +11,7 @@ from ..argtypes import fleet_name
 from ..comm.session import ConfigFileError, EndpointError, SessionConfig, SessionError, check_endpoint, open_session
 from ..drivers import DriverError, UnknownDriver
 from ..policies import PolicyUnavailable
-from ..scenario import DRIVERS, POLICIES, ScenarioError, load_scenario, with_driver_settings, with_overrides
+from ..scenario import ScenarioError, driver_names, load_scenario, policy_names, with_driver_settings, with_overrides
 from .agent import Agent, AgentConfig
 
 log = logging.getLogger("stack.agent")
@@ -28,8 +28,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--id", type=int, required=True, help="robot id in the scenario")
     ap.add_argument("--role", choices=("leader", "follower", "peer"), help="must match the scenario (checked)")
     ap.add_argument("--scenario", required=True, help="scenario YAML")
-    ap.add_argument("--policy", choices=POLICIES, help="override the robot's policy")
-    ap.add_argument("--driver", choices=DRIVERS, help="override the robot's driver")
+    ap.add_argument("--policy", choices=policy_names(), help="override the robot's policy")
+    ap.add_argument("--driver", choices=driver_names(), help="override the robot's driver")
     ap.add_argument("--connect", default="tcp/127.0.0.1:7447", help="Zenoh router endpoint (default %(default)s)")
     ap.add_argument("--fleet", default="default", type=fleet_name, help="fleet name, the key prefix stack/<fleet>/ (default %(default)s)")
     ap.add_argument("--lockstep", action="store_true", help="answer the simulated world's steps (set by stack-fleet)")

@@ -1,21 +1,31 @@
 """Drivers behind one interface, chosen by name; backends are imported only when used.
 
 >>> drv = make_driver("sim", robot_id=2, limits=DriverLimits(1.0, 1.0), session=s, keys=Keys("f"))
+
+Each record names the driver class, its settings dataclass (the scenario's ``robot.<driver>`` block,
+read by ``Driver._configure``) and the simulated device the world hosts behind it, as strings: the
+drivers never import ``stack.sim_bridge``. ``LIDARS``: the lidar sources (sensor drivers).
 """
 
 from __future__ import annotations
 
-import importlib
-
+from ..plugins import Plugin, PluginError, Registry
 from .base import Driver, DriverError, DriverLimits, Odometry
 
-# name -> "module:Class", imported lazily (python-can's BACKENDS style)
-BACKENDS: dict[str, str] = {
-    "sim": "stack.drivers.sim:SimDriver",
-    "can": "stack.drivers.can:CanDriver",
-    "mavlink": "stack.drivers.mavlink:MavlinkDriver",
-    "jackal": "stack.drivers.jackal:JackalDriver",
-}
+DRIVERS = Registry("drivers", [
+    Plugin("sim", None, "stack.drivers.sim:SimDriver", summary="simulated differential drive: cmd_vel / odom over Zenoh"),
+    Plugin("can", "stack.drivers.can:CanConfig", "stack.drivers.can:CanDriver",
+           device="stack.sim_bridge.devices_can:OdriveDevice", summary="two ODrive axes over CAN (python-can)"),
+    Plugin("mavlink", "stack.drivers.mavlink:MavlinkConfig", "stack.drivers.mavlink:MavlinkDriver",
+           device="stack.sim_bridge.devices_mavlink:RoverDevice", summary="ArduPilot Rover over MAVLink (pymavlink)"),
+    Plugin("jackal", "stack.drivers.jackal:JackalConfig", "stack.drivers.jackal:JackalDriver",
+           device="stack.sim_bridge.jackal_sim:JackalDevice", summary="ROS 2 Jackal behind zenoh-bridge-ros2dds (CDR)"),
+])
+BACKENDS = DRIVERS  # python-can's name for it
+
+LIDARS = Registry("lidars", [
+    Plugin("world", None, "stack.drivers.lidar:WorldLidar", summary="the simulated world's lidar, on stack/<fleet>/<id>/scan"),
+])
 
 
 class UnknownDriver(DriverError):
@@ -23,14 +33,15 @@ class UnknownDriver(DriverError):
 
 
 def driver_class(name: str) -> type[Driver]:
-    if name not in BACKENDS:
-        raise UnknownDriver(f"driver {name!r} is not available (available: {', '.join(sorted(BACKENDS))})")
-    module, cls = BACKENDS[name].split(":")
-    return getattr(importlib.import_module(module), cls)
+    try:
+        return DRIVERS[name].make()
+    except PluginError as e:
+        raise UnknownDriver(str(e)) from None
 
 
 def make_driver(name: str, robot_id: int, limits: DriverLimits, **kw) -> Driver:
     return driver_class(name)(robot_id, limits, **kw)
 
 
-__all__ = ["BACKENDS", "Driver", "DriverError", "DriverLimits", "Odometry", "UnknownDriver", "driver_class", "make_driver"]
+__all__ = ["BACKENDS", "DRIVERS", "Driver", "DriverError", "DriverLimits", "LIDARS", "Odometry", "UnknownDriver",
+           "driver_class", "make_driver"]

@@ -12,7 +12,7 @@ from pathlib import Path
 from ..argtypes import fleet_name, nonnegative_float, positive_int
 from ..comm.session import ConfigFileError, EndpointError, SessionConfig, SessionError, check_endpoint, port_free, zenoh_config
 from ..policies import available as available_policies
-from ..scenario import DRIVERS, FAULT_KINDS, POLICIES, ScenarioError, load_scenario, parse_fault_at, with_overrides
+from ..scenario import FAULT_KINDS, ScenarioError, driver_names, load_scenario, parse_fault_at, policy_names, with_overrides
 from .orchestrator import EXIT_BAD_INPUT, FleetConfig, run_fleet, sigterm_as_interrupt
 
 
@@ -61,8 +61,8 @@ def parser() -> argparse.ArgumentParser:
     r = sub.add_parser("run", help="run one scenario: router, world, one agent per robot; writes report.json and plots")
     r.add_argument("scenario", help="scenario YAML")
     r.add_argument("--out", type=Path, help="output folder (default runs/<scenario>)")
-    r.add_argument("--policy", choices=POLICIES, help="override every robot's policy")
-    r.add_argument("--driver", choices=DRIVERS, help="override every robot's driver")
+    r.add_argument("--policy", choices=policy_names(), help="override every robot's policy")
+    r.add_argument("--driver", choices=driver_names(), help="override every robot's driver")
     r.add_argument("--loss", type=_prob, help="override comm.loss")
     r.add_argument("--latency-ms", type=nonnegative_float, help="override comm.latency_ms")
     r.add_argument("--seed", type=int, help="override the seed of every random source")
@@ -107,10 +107,9 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
     missing = sorted({r.policy for r in sc.robots} - set(available_policies()))
     if missing:
         raise ScenarioError(f"{a.scenario}: policy {', '.join(missing)} is not implemented yet (available: {', '.join(available_policies())})")
-    from ..drivers import BACKENDS
-    from ..sim_bridge.devices import DEVICES
+    from ..sim_bridge.devices import hosted
 
-    hostable = sorted(set(BACKENDS) & (set(DEVICES) | {"sim"}))
+    hostable = sorted(set(hosted()) | {"sim"})
     drivers = sorted({r.driver for r in sc.robots} - set(hostable))
     if drivers:
         raise ScenarioError(f"{a.scenario}: driver {', '.join(drivers)} is not implemented yet (available: {', '.join(hostable)})")
@@ -172,9 +171,10 @@ def cli(argv: list[str] | None = None) -> int:
             if a.sweep is not None:
                 from .bench import sweep
 
-                bad = [p for p in (a.policies or []) if p not in POLICIES]
+                bad = [p for p in (a.policies or []) if p not in policy_names()]
                 if bad:
-                    print(f"stack-fleet: --policies: unknown policy {bad[0]!r} (one of {', '.join(POLICIES)})", file=sys.stderr)
+                    print(f"stack-fleet: --policies: unknown policy {bad[0]!r} (one of {', '.join(policy_names())})",
+                          file=sys.stderr)
                     return EXIT_BAD_INPUT
                 return sweep(a.scenarios, a.out, a.sweep[0], a.sweep[1], seeds=a.seeds, policies=a.policies,
                              duration=a.duration)

@@ -1,35 +1,49 @@
-"""Onboard policies, one module (or package) per paper plus ``pid``; chosen by name, imported lazily."""
+"""Onboard policies, one module (or package) per paper plus ``pid``; chosen by name, imported lazily.
+
+Adding a policy is one module (its config dataclass, its Policy, its factory) and one line below
+(see ``docs/extending.md``); out-of-tree policies come from entry points (``stack.plugins``).
+"""
 
 from __future__ import annotations
 
-import importlib
-
+from ..plugins import Plugin, PluginError, Registry
 from .base import Observation, Policy
 
-# name -> "module:factory"; a factory takes (robot_config, **kw) and returns a Policy.
-REGISTRY: dict[str, str] = {
-    "pid": "stack.policies.factories:make_pid",
-    "aina": "stack.policies.factories:make_aina",
-    "qlearn": "stack.policies.factories:make_qlearn",
-    "drl": "stack.policies.factories:make_drl",
-    "fuzzy": "stack.policies.factories:make_fuzzy",
-    "fuzzy-lstm": "stack.policies.factories:make_fuzzy_lstm",
-}
+# a factory takes (robot_config, **kw) and returns a Policy; its settings are robot.<key> in a scenario
+POLICIES = Registry("policies", [
+    Plugin("pid", "stack.policies.pid:PidConfig", "stack.policies.pid:make_pid", summary="go-to-goal PID (Bai 2022, situation 1)"),
+    Plugin("drl", "stack.policies.drl.config:DrlConfig", "stack.policies.drl.policy:make_drl", summary="dueling double DQN (Bai 2022)"),
+    Plugin("aina", "stack.policies.aina:AinaConfig", "stack.policies.aina:make_aina", summary="immune-network steering (Deng 2016)"),
+    Plugin("fuzzy", "stack.policies.fuzzy.policy:FuzzyConfig", "stack.policies.fuzzy.policy:make_fuzzy",
+           summary="fuzzy boundary following + FLC_SR arrival-time coordination (Chang 2020)"),
+    Plugin("fuzzy-lstm", "stack.policies.fuzzy.policy:FuzzyConfig", "stack.policies.fuzzy.policy:make_fuzzy_lstm", key="fuzzy",
+           summary="as fuzzy, with the LSTM coordinator (Chang 2020)"),
+    Plugin("qlearn", "stack.policies.qlearn:QlearnPolicyConfig", "stack.policies.qlearn:make_qlearn",
+           summary="Q-learning grid planning on a lidar map + eq. (12)-(13) tracking (Fan 2021)"),
+])
+REGISTRY = POLICIES
 
 
-class PolicyUnavailable(LookupError):
+class PolicyUnavailable(PluginError):
     pass
 
 
 def available() -> list[str]:
-    return sorted(REGISTRY)
+    return sorted(POLICIES)
 
 
 def make_policy(name: str, robot, **kw) -> Policy:
-    if name not in REGISTRY:
-        raise PolicyUnavailable(f"policy {name!r} is not implemented yet (available: {', '.join(available())})")
-    module, fn = REGISTRY[name].split(":")
-    return getattr(importlib.import_module(module), fn)(robot, **kw)
+    try:
+        rec = POLICIES[name]
+    except PluginError:
+        raise PolicyUnavailable(f"policy {name!r} is not implemented yet (available: {', '.join(available())})") from None
+    return rec.make()(robot, **kw)
 
 
-__all__ = ["Observation", "Policy", "PolicyUnavailable", "REGISTRY", "available", "make_policy"]
+def settings_class(key: str) -> type | None:
+    """The config dataclass of the policies whose settings sit under ``robot.<key>`` (None: no such policy)."""
+    rec = POLICIES.by_key(key)
+    return rec.config_class() if rec is not None else None
+
+
+__all__ = ["Observation", "POLICIES", "Policy", "PolicyUnavailable", "REGISTRY", "available", "make_policy", "settings_class"]

@@ -39,7 +39,7 @@ anything with the paper's tau3 = 0.1: an antibody 45 degrees off the goal loses
 back, so the robot would drive into an obstacle on its path. The test suite shows ours does
 avoid (``tests/test_aina.py``).
 
-**Choices where the paper is silent** (all in :class:`stack.scenario.AinaConfig`):
+**Choices where the paper is silent** (all in :class:`AinaConfig`):
 - the idiotypic sum of eq. (4) is divided by N_Ab, so the network's behaviour does not
   depend on how many antibodies there are;
 - eq. (4) is integrated with ``n_iter`` Euler steps of ``h`` per control step, starting from
@@ -73,14 +73,65 @@ avoid (``tests/test_aina.py``).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..estimation.pose import wrap as _wrap
+from ..settings import check, rule
 from .base import Observation, Policy
 
 TWO_PI = 2.0 * math.pi
+
+_COUNT = rule(">= 1", "<= 3600")
+_FRACTION = rule(">= 0", "<= 1")
+
+
+@dataclass(frozen=True)
+class AinaConfig:
+    """``robot.aina``: parameters of the immune-network policy (Deng et al.)."""
+
+    RULE = (">= 0",)
+
+    n_ab: int = field(default=36, metadata=_COUNT)
+    """N_Ab antibodies, the steering directions 2 pi (s - 1) / N_Ab."""
+    n_s: int = field(default=8, metadata=_COUNT)
+    """N_S virtual range sensors (lidar sectors), like the AmigoBot's eight sonars."""
+    tau1: float = 0.4
+    """Eq. (6): weight of the leader's steering direction (tau1 + tau2 + tau3 = 1)."""
+    tau2: float = 0.5
+    """Eq. (6): weight of the virtual robot's azimuth."""
+    tau3: float = 0.1
+    """Eq. (6): weight of the obstacle term."""
+    mu1: float = 0.5
+    """Eq. (10): the leader's goal weight (mu1 + mu2 = 1)."""
+    mu2: float = 0.5
+    """Eq. (10): the leader's obstacle weight."""
+    k_s: float = 0.5
+    """Eq. (4): natural death coefficient."""
+    kappa: float = 4.0
+    """Eq. (9) as read here: steepness of the repulsion over the normalised distance."""
+    k1: float = 0.3
+    """Eq. (13): K1 [1/s]."""
+    k2: float = 0.08
+    """Eq. (13): K2 [1/s]."""
+    v_leader: float = field(default=0.6, metadata=_FRACTION)
+    """The leader's constant speed (section 3.2), a fraction of v_max."""
+    k_heading: float = 2.0
+    """Steering-direction error -> angular velocity [1/s]."""
+    robot_detect: float = 1.0
+    """[m] a neighbour is an obstacle within this clearance (the paper's "detection radius")."""
+    clones: int = field(default=12, metadata=_COUNT)
+    """Algorithm 1: clones made each step."""
+    p_mutation: float = field(default=0.1, metadata=_FRACTION)
+    """Algorithm 1: probability that one gene (bit) flips."""
+
+    def __post_init__(self):
+        check(self)
+        if abs(self.tau1 + self.tau2 + self.tau3 - 1.0) > 1e-6:
+            raise ValueError(f"tau1 + tau2 + tau3 must be 1 (eq. 6), got {self.tau1 + self.tau2 + self.tau3:g}")
+        if abs(self.mu1 + self.mu2 - 1.0) > 1e-6:
+            raise ValueError(f"mu1 + mu2 must be 1 (eq. 10), got {self.mu1 + self.mu2:g}")
 
 
 def _sigmoid(A: np.ndarray) -> np.ndarray:
@@ -250,7 +301,7 @@ class AinaPolicy(Policy):
     name = "aina"
     hybrid = False  # not a network inside Bai's hybrid switch: this policy drives in every situation
 
-    def __init__(self, cfg, *, role: str, radius: float, v_max: float, lidar_fov: float, lidar_range: float,
+    def __init__(self, cfg: AinaConfig, *, role: str, radius: float, v_max: float, lidar_fov: float, lidar_range: float,
                  seed: int = 0):
         self.cfg = cfg
         self.role = role
@@ -302,3 +353,9 @@ class AinaPolicy(Policy):
         self.last = {"theta": theta_star, "v": v, "v_13": v_13, "w": w, "e_x": e_x, "e_y": e_y, "v_i": v_i,
                      "theta_i": theta_i}
         return v, w
+
+
+def make_aina(robot, *, seed: int = 0, **_) -> AinaPolicy:
+    """Factory: ``robot.aina`` (:class:`AinaConfig`), the robot's role, radius, speed and lidar."""
+    return AinaPolicy(robot.config_for("aina"), role=robot.role or "leader", radius=robot.radius, v_max=robot.v_max,
+                      lidar_fov=robot.lidar.fov, lidar_range=robot.lidar.range, seed=seed)

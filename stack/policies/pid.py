@@ -9,27 +9,42 @@ with the leader; zero for a fixed goal).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from ..estimation.pose import wrap as _wrap
+from ..settings import check, rule
 from .base import Observation, Policy
 
 
-@dataclass
-class PidGains:
+@dataclass(frozen=True)
+class PidConfig:
+    """``robot.pid``: gains of the go-to-goal PID policy (every other ``hybrid`` policy's situation 1 too)."""
+
+    RULE = (">= 0",)
+
     k_v: float = 0.8
+    """Linear speed per metre of distance to the target [1/s]."""
     k_w: float = 2.0
+    """Angular rate per radian of heading error [1/s]."""
     k_i: float = 0.0
+    """Integral gain on the heading error."""
     k_d: float = 0.1
-    v_cap: float = 1.0  # the speed this policy asks for at most [m/s]
-    arrive: float = 0.05  # within this of the target, hold still [m]
+    """Derivative gain on the heading error."""
+    v_cruise: float = field(default=0.6, metadata=rule(">= 0", "<= 1"))
+    """The leader's cruise speed, a fraction of ``v_max`` (a follower's cap is ``v_max``)."""
+    arrive: float = 0.05
+    """[m] within this of a fixed target the robot holds still."""
+
+    def __post_init__(self):
+        check(self)
 
 
 class PidPolicy(Policy):
     name = "pid"
 
-    def __init__(self, gains: PidGains):
-        self.g = gains
+    def __init__(self, cfg: PidConfig | None = None, v_cap: float = 1.0):
+        self.g = cfg or PidConfig()
+        self.v_cap = v_cap  # the speed this policy asks for at most [m/s]
         self._int = 0.0
         self._prev: float | None = None
 
@@ -55,5 +70,11 @@ class PidPolicy(Policy):
         self._int = max(-1.0, min(1.0, self._int + e * obs.dt))
         w = g.k_w * e + g.k_i * self._int + g.k_d * de
         v = (g.k_v * obs.d_g + max(0.0, u_ff)) * math.cos(e)
-        v = max(0.0, min(g.v_cap, v))
+        v = max(0.0, min(self.v_cap, v))
         return v, w
+
+
+def make_pid(robot, **_) -> PidPolicy:
+    """Factory: ``robot.pid`` (:class:`PidConfig`); the leader cruises at ``v_cruise * v_max``."""
+    cfg = robot.config_for("pid")
+    return PidPolicy(cfg, v_cap=robot.v_max * (cfg.v_cruise if robot.role == "leader" else 1.0))

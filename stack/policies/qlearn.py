@@ -96,20 +96,25 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, fields, is_dataclass
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
 from ..estimation.pose import wrap as _wrap
 from ..planning.qlearning import QLearningConfig, QLearningResult, plan
+from ..settings import check, rule
 from .base import Observation, Policy
 
 TWO_PI = 2.0 * math.pi
+_COUNT = rule(">= 1", "<= 100000")
 
 
 @dataclass
 class QlearnPolicyConfig:
-    """Parameters of ``--policy qlearn`` (scenario key ``robot.qlearn``); see the module docstring."""
+    """Parameters of ``--policy qlearn`` (scenario key ``robot.qlearn``); see the module docstring.
+    Lengths, gains and counts are positive; ``evidence_min`` is a log-odds floor (any number up to 0)."""
+
+    RULE = ("> 0",)
 
     # --- the leader's lidar grid
     cell: float = 0.5
@@ -123,7 +128,7 @@ class QlearnPolicyConfig:
     """Log-odds added to a cell where a beam ends."""
     miss: float = 0.4
     """Log-odds removed from a cell a beam passes through (up to one cell short of its end)."""
-    evidence_min: float = -1.0
+    evidence_min: float = field(default=-1.0, metadata=rule("<= 0"))
     """Lower clamp of a cell's log-odds (a cell seen free long still takes two hits)."""
     evidence_max: float = 3.0
     """Upper clamp of a cell's log-odds (a wrongly marked cell takes about eight passes to clear)."""
@@ -136,11 +141,11 @@ class QlearnPolicyConfig:
     neighbour_gate: float = 0.3
     """A beam ending within radius + this [m] of a known neighbour marks nothing (robots move)."""
     # --- planning
-    max_rounds: int = 1000
+    max_rounds: int = field(default=1000, metadata=_COUNT)
     """Most Q-learning rounds (episodes) per plan."""
-    warm_rounds: int = 200
+    warm_rounds: int = field(default=200, metadata=_COUNT)
     """Most rounds of a warm-started plan; if it reaches no path, a cold plan (``max_rounds``) follows."""
-    replan_near: int = 1
+    replan_near: int = field(default=1, metadata=_COUNT)
     """Replan when a newly occupied cell comes within the inflation plus this many cells of the path."""
     off_path: float = 1.0
     """Replan when the robot is more than this [m] from the path."""
@@ -178,7 +183,7 @@ class QlearnPolicyConfig:
     """Adjustment coefficient c of eq. (13) (section 5.2), per cell of d_attr."""
     R_static: float = 1.0
     """Penalty R_static of eq. (13) for a candidate that is an obstacle (section 5.2)."""
-    n_headings: int = 16
+    n_headings: int = field(default=16, metadata=_COUNT)
     """Candidate headings one step ahead (8 = the paper's eight actions), plus the straight one."""
     step: float | None = None
     """One step [m]; None = ``cell``."""
@@ -196,6 +201,9 @@ class QlearnPolicyConfig:
     """Cost added per pi of turn away from the current heading, when ranking (eq. (13) itself is reported
     without it): a unicycle's commitment. It breaks near-ties between far-apart headings (left or right
     round an obstacle on the line to the slot), which otherwise flip and cost a turn in place each time."""
+
+    def __post_init__(self):
+        check(self)
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "QlearnPolicyConfig":
@@ -825,19 +833,11 @@ class QlearnPolicy(Policy):
 
 
 def make_qlearn(robot, *, seed: int = 0, **_) -> QlearnPolicy:
-    """Build the policy from a robot config (``robot.qlearn`` if the scenario has one: a
-    :class:`QlearnPolicyConfig` or a dict of its fields)."""
-    q = getattr(robot, "qlearn", None)
-    if isinstance(q, QlearnPolicyConfig):
-        cfg = q
-    else:
-        if is_dataclass(q):
-            q = asdict(q)
-        cfg = QlearnPolicyConfig.from_dict(q if isinstance(q, dict) else None)
+    """Factory: ``robot.qlearn`` (:class:`QlearnPolicyConfig`), the robot's role, radius, limits and lidar."""
     lidar = robot.lidar
-    return QlearnPolicy(cfg, role=robot.role, radius=robot.radius, v_max=robot.v_max, w_max=robot.w_max,
-                        lidar_fov=lidar.fov, lidar_range=lidar.range, lidar_noise=getattr(lidar, "noise_std", 0.0),
-                        seed=seed)
+    return QlearnPolicy(robot.config_for("qlearn"), role=robot.role, radius=robot.radius, v_max=robot.v_max,
+                        w_max=robot.w_max, lidar_fov=lidar.fov, lidar_range=lidar.range,
+                        lidar_noise=getattr(lidar, "noise_std", 0.0), seed=seed)
 
 
 __all__ = ["QlearnPolicyConfig", "QlearnPolicy", "LidarGrid", "Polyline", "TrackingChoice", "gpf_choice",

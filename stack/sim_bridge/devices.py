@@ -26,14 +26,13 @@ Lifecycle, driven by the world (``WorldServer``):
    calls only sync the body.
 4. ``close()``: the device is gone (the endpoint disappears).
 
-Devices are made by name from ``DEVICES`` (lazy imports, like the drivers' registry).
+Devices are made by driver name from the drivers' registry (each record names its device; lazy imports).
 ``driver_params(robot_id)`` tells the fleet what to hand the agent's driver so that it finds
 the device (merged over the scenario's own driver settings for that robot).
 """
 
 from __future__ import annotations
 
-import importlib
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
@@ -141,23 +140,25 @@ class HostedDevice(ABC):
         """The device is gone: nothing more on its wire."""
 
 
-# name -> "module:Class", imported when a robot needs it
-DEVICES: dict[str, str] = {
-    "can": "stack.sim_bridge.devices_can:OdriveDevice",
-    "mavlink": "stack.sim_bridge.devices_mavlink:RoverDevice",
-    "jackal": "stack.sim_bridge.jackal_sim:JackalDevice",
-}
-
-
 def device_class(driver: str) -> type[HostedDevice]:
-    if driver not in DEVICES:
-        raise DeviceError(f"no simulated device for driver {driver!r} (the world hosts {', '.join(sorted(DEVICES))})")
-    module, cls = DEVICES[driver].split(":")
-    return getattr(importlib.import_module(module), cls)
+    """The simulated device behind ``driver`` (its record in ``stack.drivers.DRIVERS``), imported now."""
+    from ..drivers import DRIVERS
+
+    rec = DRIVERS.get(driver)
+    if rec is None or rec.device is None:
+        raise DeviceError(f"no simulated device for driver {driver!r} (the world hosts {', '.join(hosted())})")
+    return rec.device_class()
+
+
+def hosted() -> list[str]:
+    """The drivers the world hosts a simulated device for."""
+    from ..drivers import DRIVERS
+
+    return sorted(name for name, rec in DRIVERS.items() if rec.device)
 
 
 def make_device(driver: str, robot, **kw) -> HostedDevice:
     return device_class(driver)(robot, **kw)
 
 
-__all__ = ["Body", "DEVICES", "DeviceError", "HostedDevice", "device_class", "make_device"]
+__all__ = ["Body", "DeviceError", "HostedDevice", "device_class", "hosted", "make_device"]

@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..checks import check_numbers
+from ...settings import check
+
+_HOLD = "[start, stop] with 0 < start < stop <= 1 (fractions of d_com), or null"
 
 
 @dataclass
 class DrlConfig:
     """``robot.drl`` (scenario): settings of ``--policy drl``. Unknown keys are errors."""
+
+    RULE = (">= 0",)
 
     weights: str | None = None
     """A state_dict file of :class:`DuelingQNet` (default: the shipped ``weights/drl.pt``)."""
@@ -22,21 +25,15 @@ class DrlConfig:
     """[s] how far ahead each action's arc (v, w held) is checked."""
     shield_margin: float = 0.1
     """[m] clearance kept beyond the robot's radius."""
-    leader_hold: tuple[float, float] | None = (0.8, 0.95)
+    leader_hold: tuple[float, float] | None = field(default=(0.8, 0.95), metadata={"expect": _HOLD})
     """(start, stop), fractions of d_com: as a leader's farthest robot goes from start d_com to stop d_com,
     its speed after eq. (20) falls linearly to zero, so a follower held up at an obstacle stays in range
     (ours; null: the paper's eq. (20) alone)."""
 
     def __post_init__(self):
-        check_numbers(self)  # shield, shield_horizon, shield_margin
-        if self.leader_hold is not None:
-            h = self.leader_hold
-            ok = (isinstance(h, (list, tuple)) and len(h) == 2
-                  and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in h)
-                  and 0 < h[0] < h[1] <= 1)
-            if not ok:
-                raise ValueError(f"leader_hold: expected [start, stop] with 0 < start < stop <= 1 (fractions of d_com), "
-                                 f"or null, got {h!r}")
-            self.leader_hold = (float(h[0]), float(h[1]))
-        if self.weights is not None and not Path(str(self.weights)).is_file():
+        check(self)
+        h = self.leader_hold
+        if h is not None and not 0 < h[0] < h[1] <= 1:
+            raise ValueError(f"leader_hold: expected {_HOLD}, got {list(h)!r}")
+        if self.weights is not None and not Path(self.weights).is_file():
             raise ValueError(f"weights: no such file: {self.weights}")

@@ -113,10 +113,9 @@ class DrlPolicy(Policy):
 
 
 def make_drl(robot=None, *, seed: int = 0, weights: str | Path | None = None, **_) -> DrlPolicy:
-    """Factory for the registry: ``robot.drl`` (a dict of :class:`DrlConfig` fields; the shield on by default),
-    the shipped weights unless ``weights`` or ``robot.drl.weights`` names others (greedy: ``seed`` unused)."""
-    kw = dict(getattr(robot, "drl", None) or {}) if robot is not None else {}
-    cfg = DrlConfig(**kw)
+    """Factory for the registry: ``robot.drl`` (:class:`DrlConfig`; the shield on by default), the shipped
+    weights unless ``weights`` or ``robot.drl.weights`` names others (greedy: ``seed`` unused)."""
+    cfg = robot.config_for("drl") if robot is not None else DrlConfig()
     if robot is None:
         return DrlPolicy(weights, cfg=cfg)
     return DrlPolicy(weights, cfg=cfg, radius=robot.radius, fov=robot.lidar.fov)

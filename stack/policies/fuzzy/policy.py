@@ -40,14 +40,15 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
 from ...estimation.pose import wrap as _wrap
+from ...settings import check, rule
 from ..base import Observation, Policy
-from ..checks import check_numbers
 from .mrc import Coordinator, FlcSr, LstmMrc, LstmWeights, MrcConfig, PeerEstimate
 from .rbc import BF_LEFT, BF_RIGHT, TS, BoundaryFollower, RbcConfig, RobotBehaviourController, SupervisorConfig, sectors
 from .tsk import TSK
@@ -59,15 +60,23 @@ COORDINATORS = ("flc", "lstm", "none")
 
 @dataclass
 class FuzzyConfig:
-    coordinator: str = "flc"
-    """"flc" (FLC_SR), "lstm" (recurrent MRC) or "none" (each robot alone, the paper's "no MRC")."""
+    """``robot.fuzzy`` (``--policy fuzzy`` and ``fuzzy-lstm``): the policy's settings; the fields of
+    :class:`MrcConfig` and :class:`SupervisorConfig` sit beside these (``robot.fuzzy.v_min``)."""
+
+    RULE = (">= 0",)
+
+    coordinator: Literal["flc", "lstm", "none"] = "flc"
+    """"flc" (FLC_SR), "lstm" (recurrent MRC) or "none" (each robot alone, the paper's "no MRC");
+    ``--policy fuzzy-lstm`` is always "lstm"."""
+    params: str | None = None
+    """A JSON file of trained parameters (default: the shipped ``params/chang2020.json``)."""
     target: tuple[float, float] | None = None
     """The common target [m, world]; None: this robot's own goal stands in for it (see module doc)."""
-    turn_time: float = 1.0
+    turn_time: float = field(default=1.0, metadata=rule("> 0"))
     """[s] steering angle -> yaw rate: w = theta_r / turn_time."""
     arrive_tol: float = 0.4
     """[m] at the goal: stop and stay."""
-    t_brake: float = 1.5
+    t_brake: float = field(default=1.5, metadata=rule("> 0"))
     """[s] near the goal v <= d_goal / t_brake."""
     cos_floor: float = 0.2
     """TS: v_r times max(cos_floor, cos theta_r)."""
@@ -96,11 +105,15 @@ class FuzzyConfig:
     peer_goals: bool = True
     """Rank by the distances the peers report to their own goals (``State.d_goal``), as the paper's central
     MRC knows them; False: each peer's distance to this robot's goal (or to ``target``)."""
-    mrc: MrcConfig = field(default_factory=MrcConfig)
-    supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
+    mrc: MrcConfig = field(default_factory=MrcConfig, metadata={"inline": True})
+    """The coordinator's settings (eq. 1-2, 7-8)."""
+    supervisor: SupervisorConfig = field(default_factory=SupervisorConfig, metadata={"inline": True})
+    """The behaviour supervisor's settings (Fig. 5)."""
 
     def __post_init__(self):
-        check_numbers(self, positive=("turn_time", "t_brake"))
+        check(self)
+        if self.params is not None and not Path(self.params).is_file():
+            raise ValueError(f"params: no such file: {self.params}")
 
 
 def hand_set_params() -> dict:
@@ -290,34 +303,23 @@ class FuzzyPolicy(Policy):
         return float(v), float(theta_r / cfg.turn_time)
 
 
-def make_fuzzy(robot=None, *, seed: int = 0, coordinator: str = "flc", params: str | Path | None = None,
+def make_fuzzy(robot=None, *, seed: int = 0, coordinator: str | None = None, params: str | Path | None = None,
                **_) -> FuzzyPolicy:
-    """Factory: ``robot`` is a :class:`stack.scenario.RobotConfig` (duck-typed; None: defaults).
-
-    ``robot.fuzzy`` (a dict of :class:`FuzzyConfig`, :class:`MrcConfig` and :class:`SupervisorConfig`
-    fields plus ``coordinator`` and ``params``, when the scenario reader grows that key) overrides the
-    defaults (unknown keys: ValueError; the scenario key ``robot.fuzzy``, e.g. ``{coordinator: none}`` for the
-    paper's "no MRC" runs); ``coordinator`` picks FLC_SR, the LSTM or none; ``params`` a JSON file
-    (default: the shipped ``params/chang2020.json``). ``seed`` is unused (the policy is deterministic)."""
-    kw = dict(getattr(robot, "fuzzy", None) or {}) if robot is not None else {}
-    coordinator = kw.pop("coordinator", coordinator)
-    params = kw.pop("params", params)
-    names = {f.name for f in fields(FuzzyConfig)}
-    mrc_kw = {k: kw.pop(k) for k in list(kw) if k in {f.name for f in fields(MrcConfig)} and k not in names}
-    sup_kw = {k: kw.pop(k) for k in list(kw) if k in {f.name for f in fields(SupervisorConfig)} and k not in names}
-    unknown = set(kw) - names
-    if unknown:
-        raise ValueError(f"robot.fuzzy: unknown keys {sorted(unknown)}")
-    cfg = FuzzyConfig(coordinator=coordinator, mrc=MrcConfig(**mrc_kw), supervisor=SupervisorConfig(**sup_kw),
-                      **{k: (tuple(v) if k == "target" else v) for k, v in kw.items()})
+    """Factory: ``robot`` is a :class:`stack.scenario.RobotConfig` (None: defaults); its ``robot.fuzzy``
+    (:class:`FuzzyConfig`) is the policy's config. ``coordinator`` (FLC_SR, the LSTM or none) and ``params``
+    (a JSON file), when given, override the config's. ``seed`` is unused (the policy is deterministic)."""
+    cfg = robot.config_for("fuzzy") if robot is not None else FuzzyConfig()
+    if coordinator is not None:
+        cfg = replace(cfg, coordinator=coordinator)
+    table = load_params(params or cfg.params)
     if robot is None:
-        return FuzzyPolicy(cfg, load_params(params))
-    return FuzzyPolicy(cfg, load_params(params), fov=robot.lidar.fov, range_max=robot.lidar.range,
-                       v_max=robot.v_max, radius=robot.radius)
+        return FuzzyPolicy(cfg, table)
+    return FuzzyPolicy(cfg, table, fov=robot.lidar.fov, range_max=robot.lidar.range, v_max=robot.v_max,
+                       radius=robot.radius)
 
 
 def make_fuzzy_lstm(robot=None, **kw) -> FuzzyPolicy:
-    kw.setdefault("coordinator", "lstm")
+    kw["coordinator"] = "lstm"
     return make_fuzzy(robot, **kw)
 
 

@@ -1,0 +1,69 @@
+"""Markdown tables of every plugin's settings, made from the registries (``python -m stack.plugins``):
+``docs/settings.md`` is this text, and a test keeps the two equal."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import MISSING
+
+from . import settings
+from .plugins import Plugin, Registry, registries
+
+HEADER = ("# Plugin settings\n\n"
+          "Generated from the plugin registries by `python -m stack.plugins` (do not edit by hand: "
+          "`tests/test_registry.py` checks this file against them). Each policy's settings are the "
+          "scenario block `robot.<key>` (also per robot, over the `robot:` defaults); each driver's "
+          "are `robot.<driver>`. Unknown keys are errors.\n")
+
+
+def _value(v) -> str:
+    if v is MISSING:
+        return "required"
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        return f"{v:.6g}" if math.isfinite(v) else str(v)
+    if isinstance(v, (tuple, list)):
+        return "[" + ", ".join(_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k}: {_value(x)}" for k, x in v.items()) + "}"
+    return str(v)
+
+
+def _cell(text: str) -> str:
+    return text.replace("|", "\\|").replace("\n", " ")
+
+
+def plugin_table(kind: str, rec: Plugin) -> str:
+    """One plugin's heading, its record and its settings table."""
+    block = {"policies": f"`robot.{rec.settings_key}` ", "drivers": f"`robot.{rec.name}` "}.get(kind, "")
+    lines = [f"### `{rec.name}`", ""]
+    if rec.summary:
+        lines += [rec.summary + ".", ""]
+    lines.append("Settings: " + (f"{block}(`{rec.config}`)" if rec.config else "none") + f"; factory `{rec.factory}`"
+                 + (f"; simulated device `{rec.device}`" if rec.device else "") + ".")
+    cls = rec.config_class()
+    if cls is not None and kind == "policies" and rec.key and rec.key != rec.name:
+        lines += ["", f"The same settings as the policy that owns `robot.{rec.key}`."]
+    elif cls is not None:
+        lines += ["", "| key | default | accepts | meaning |", "| --- | --- | --- | --- |"]
+        for key, default, accepted, doc in settings.rows(cls):
+            lines.append(f"| `{key}` | {_cell(_value(default))} | {_cell(accepted)} | {_cell(doc)} |")
+    return "\n".join(lines) + "\n"
+
+
+def kind_section(kind: str, reg: Registry) -> str:
+    parts = [f"## {kind.capitalize()}\n", f"Registered: {', '.join(f'`{n}`' for n in reg)}.\n"]
+    parts += [plugin_table(kind, reg[name]) for name in reg]
+    return "\n".join(parts)
+
+
+def settings_markdown(only_builtin: bool = True) -> str:
+    """The whole ``docs/settings.md``: every kind, every plugin (the built-ins: out-of-tree plugins vary
+    by installation)."""
+    out = [HEADER]
+    for kind, reg in registries().items():
+        out.append(kind_section(kind, reg.builtins() if only_builtin else reg))
+    return "\n".join(out)
