@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import sys
 from pathlib import Path
 
 import pytest
@@ -40,6 +41,28 @@ def test_room_imports(room):
         for mod in _imports(path, room):
             for bad in FORBIDDEN[room]:
                 assert not (mod == bad or mod.startswith(bad + ".")), f"{path.relative_to(ROOT.parent)} imports {mod}"
+
+
+def test_models_import_nothing_of_ours_and_only_numpy():
+    """stack/models (the shared kinematics, geometry and observation builders) is the bottom room:
+    every other room may import it, it imports only itself, numpy and the standard library."""
+    files = list((ROOT / "models").rglob("*.py"))
+    assert {p.name for p in files} >= {"kinematics.py", "geometry.py", "observation.py"}
+    for path in files:
+        for mod in _imports(path, "models"):
+            top = mod.split(".")[0]
+            ok = mod.startswith("stack.models") or top in {"numpy", "__future__"} or top in sys.stdlib_module_names
+            assert ok and mod != "stack", f"{path.relative_to(ROOT.parent)} imports {mod}"
+
+
+def test_rooms_use_the_shared_models():
+    """One copy of each model: the world, the EKF, the decision layer and the training worlds import it."""
+    for rel, model in (("sim_bridge/world.py", "kinematics"), ("estimation/ekf.py", "kinematics"),
+                       ("train/drlworld.py", "kinematics"), ("train/fuzzyworld.py", "kinematics"),
+                       ("agents/decision.py", "observation"), ("train/fuzzyworld.py", "observation"),
+                       ("train/drlworld.py", "observation"), ("estimation/pose.py", "geometry")):
+        pkg = rel.split("/")[0]
+        assert f"stack.models.{model}" in _imports(ROOT / rel, pkg), f"{rel} does not use stack.models.{model}"
 
 
 def test_every_zenoh_session_goes_through_the_session_helper():

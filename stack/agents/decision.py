@@ -21,7 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..estimation.pose import wrap
+from ..models.geometry import polar, slot_position
+from ..models.observation import PREDICT_HORIZON_S, neighbour_view, observation_fields, predicted
 from ..policies.base import Observation
 
 SITUATIONS = ("leader-1", "leader-2", "follower-1", "follower-2", "follower-3", "peer", "waiting")
@@ -40,10 +41,13 @@ class Neighbour:
     seq: int
     d_goal: float | None = None  # arrival-time peers: its distance to its own goal, as it reported
 
-    def predicted(self, now: float, horizon: float = 1.0) -> tuple[float, float]:
+    def predicted(self, now: float, horizon: float = PREDICT_HORIZON_S) -> tuple[float, float]:
         """Position extrapolated along the reported velocity, at most ``horizon`` seconds."""
-        age = max(0.0, min(horizon, now - self.stamp))
-        return self.x + self.v * math.cos(self.yaw) * age, self.y + self.v * math.sin(self.yaw) * age
+        return predicted(self.x, self.y, self.yaw, self.v, now - self.stamp, horizon)
+
+    def report(self, now: float) -> tuple:
+        """(x, y, yaw, v, w, age, d_goal): what :func:`stack.models.observation.neighbour_view` reads."""
+        return self.x, self.y, self.yaw, self.v, self.w, now - self.stamp, self.d_goal
 
 
 @dataclass
@@ -74,11 +78,6 @@ def obstacle_distance(pose_xy: tuple[float, float], yaw: float, scan: np.ndarray
     return float(r[keep].min()) if keep.any() else math.inf
 
 
-def _polar(frm: tuple[float, float], yaw: float, to: tuple[float, float]) -> tuple[float, float]:
-    dx, dy = to[0] - frm[0], to[1] - frm[1]
-    return math.hypot(dx, dy), wrap(math.atan2(dy, dx) - yaw)
-
-
 class DecisionLayer:
     def __init__(self, robot_id: int, role: str, formation, *, goal: tuple[float, float] | None, radius: float,
                  comm_range: float, scan_range: float, dt: float, centre_heading: bool = True):
@@ -102,23 +101,13 @@ class DecisionLayer:
         formation's failover rule may make this robot the leader: ``self.role`` follows it)."""
         t_run = now if t_run is None else t_run
         me = (pose.x, pose.y)
-        others = [n.predicted(now) for n in neighbours.values()]
-        dists = [math.hypot(o[0] - me[0], o[1] - me[1]) for o in others]
-        d_rmin = min(dists, default=math.inf)
-        d_rmax = max(dists, default=0.0)
-        rel = sorted(((d, _polar(me, pose.yaw, o)[1]) for d, o in zip(dists, others) if d <= self.comm_range), reverse=True)
-        nb = np.array(rel, dtype=float).reshape(-1, 2)
-        states = np.array([(n.x, n.y, n.yaw, n.v, n.w, max(0.0, now - n.stamp)) for n, d in zip(neighbours.values(), dists)
-                           if d <= self.comm_range], dtype=float).reshape(-1, 6)
-        d_goals = np.array([math.nan if n.d_goal is None else n.d_goal for n, d in zip(neighbours.values(), dists)
-                            if d <= self.comm_range], dtype=float)
+        view = neighbour_view(me, pose.yaw, [n.report(now) for n in neighbours.values()], self.comm_range)
+        others, d_rmin, d_rmax = view.others, view.d_rmin, view.d_rmax
 
         def obs(target, alpha=None, gvel=(0.0, 0.0), target_yaw=None) -> Observation:
-            d_g, a_g = _polar(me, pose.yaw, target)
-            return Observation(d_g=d_g, alpha_g=a_g if alpha is None else alpha, v=pose.v, w=pose.w, neighbours=nb,
-                               scans=scans, goal_velocity=gvel, yaw=pose.yaw, scan_range=self.scan_range, dt=self.dt,
-                               target_yaw=target_yaw, x=pose.x, y=pose.y, target=(float(target[0]), float(target[1])),
-                               neighbour_states=states, neighbour_d_goal=d_goals)
+            return Observation(**observation_fields(pose.x, pose.y, pose.yaw, pose.v, pose.w, target, view, scans=scans,
+                                                    scan_range=self.scan_range, dt=self.dt, goal_velocity=gvel,
+                                                    target_yaw=target_yaw, alpha=alpha))
 
         f = self.formation
         if f is None:  # arrival-time peer: straight to its own goal
@@ -127,7 +116,7 @@ class DecisionLayer:
         leader_id, slots = f.resolve(t_run, dead)
         self.role = "leader" if leader_id == self.id else "follower"
         if self.role == "leader":
-            d_g = math.hypot(f.goal[0] - me[0], f.goal[1] - me[1])
+            d_g = polar(me, pose.yaw, f.goal)[0]
             m = min(d_rmin, d_omin)
             if m > d_safe or d_g < m:
                 return self._count(Decision("leader-1", False, obs(f.goal), f.goal, d_rmin, d_rmax, d_omin))
@@ -138,7 +127,7 @@ class DecisionLayer:
             return self._count(Decision("waiting", False, None, None, d_rmin, d_rmax, d_omin))
         lx, ly = leader.predicted(now)
         slot = slots[self.id]  # formation.schedule switches the slots in time; failover re-assigns them
-        target = (lx + slot.L * math.cos(slot.psi), ly + slot.L * math.sin(slot.psi))  # eq. (3)
+        target = slot_position((lx, ly), slot)  # eq. (3)
         gvel = (leader.v * math.cos(leader.yaw), leader.v * math.sin(leader.yaw))
         if min(d_rmin, d_omin) > d_safe:
             return self._count(Decision("follower-1", False, obs(target, gvel=gvel, target_yaw=leader.yaw), target,
@@ -151,7 +140,7 @@ class DecisionLayer:
         sel = [o for o in others if lv[0] * (o[0] - me[0]) + lv[1] * (o[1] - me[1]) > 0]
         if sel and self.centre_heading:
             xc, yc = sum(o[0] for o in sel) / len(sel), sum(o[1] for o in sel) / len(sel)
-            alpha = _polar(me, pose.yaw, (xc, yc))[1]
+            alpha = polar(me, pose.yaw, (xc, yc))[1]
         else:
             alpha = None
         return self._count(Decision("follower-3", True, obs(target, alpha=alpha, gvel=gvel, target_yaw=leader.yaw), target,

@@ -40,7 +40,7 @@ x or P non-finite, the step is rolled back and counted there too. The yaw is wra
 (-pi, pi] after every predict and every update. No measurement has an angle residual (the
 odometry and gyro measure rates, the fix measures position), so no residual needs wrapping.
 
-Imports: numpy, filterpy and the standard library only (ARCHITECTURE.md, estimation room).
+Imports: numpy, filterpy, the standard library and stack.models (ARCHITECTURE.md, estimation room).
 """
 
 from __future__ import annotations
@@ -51,6 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
+from ..models.kinematics import arc_step, sinc
 from .pose import Pose, wrap
 
 __all__ = ["EkfConfig", "PoseEKF", "motion", "motion_jacobian"]
@@ -101,36 +102,19 @@ class EkfConfig:
                 raise ValueError(f"EkfConfig.{name} must be finite and > 0, got {val}")
 
 
-def _sinc(h: float) -> tuple[float, float]:
-    """sin(h)/h and its derivative, with their Taylor series near 0 (no 0/0)."""
-    if abs(h) < 1e-3:
-        h2 = h * h
-        return 1.0 - h2 / 6.0 + h2 * h2 / 120.0, -h / 3.0 + h * h2 / 30.0
-    s, c = math.sin(h), math.cos(h)
-    return s / h, (h * c - s) / (h * h)
-
-
 def motion(x: np.ndarray, dt: float) -> np.ndarray:
-    """Exact unicycle motion over dt with v, w constant (a circular arc), eq. (1).
-
-    The chord of the arc has length v dt sinc(w dt / 2) and heading yaw + w dt / 2, which is
-    the exact arc for any w and needs no special case at w = 0. Yaw is wrapped."""
+    """Exact unicycle motion over dt with v, w constant (a circular arc), eq. (1): the chord of the
+    arc has length v dt sinc(w dt / 2) and heading yaw + w dt / 2 (:func:`stack.models.kinematics.arc_step`,
+    the world's and the training worlds' motion too). Yaw is wrapped; v' = v, w' = w."""
     px, py, yaw, v, w = (float(a) for a in x.ravel())
-    h = 0.5 * w * dt
-    s, _ = _sinc(h)
-    chord, m = v * dt * s, yaw + h
-    return np.array([[px + chord * math.cos(m)],        # x' = x + v dt sinc(w dt/2) cos(yaw + w dt/2)
-                     [py + chord * math.sin(m)],        # y' = y + v dt sinc(w dt/2) sin(yaw + w dt/2)
-                     [_wrap(yaw + w * dt)],             # yaw' = yaw + w dt, wrapped
-                     [v],                               # v' = v
-                     [w]])                              # w' = w
+    return np.array([[a] for a in (*arc_step(px, py, yaw, v, w, dt), v, w)])
 
 
 def motion_jacobian(x: np.ndarray, dt: float) -> np.ndarray:
     """F = d motion / d x, evaluated at x (the prior)."""
     _, _, yaw, v, w = (float(a) for a in x.ravel())
     h = 0.5 * w * dt
-    s, ds = _sinc(h)
+    s, ds = sinc(h)
     chord, m = v * dt * s, yaw + h
     c, sn = math.cos(m), math.sin(m)
     dchord_dw = v * dt * ds * 0.5 * dt                  # d chord / d w (through h = w dt / 2)
@@ -143,12 +127,6 @@ def motion_jacobian(x: np.ndarray, dt: float) -> np.ndarray:
     F[IY, IW] = dchord_dw * sn + chord * c * 0.5 * dt   # dy'/dw
     F[IYAW, IW] = dt                                    # dyaw'/dw
     return F
-
-
-def _wrap(a: float) -> float:
-    """``odometry.wrap`` into (-pi, pi]: atan2 gives -pi for a = -pi, which we fold to +pi."""
-    r = wrap(a)
-    return math.pi if r <= -math.pi else r
 
 
 def _finite(*vals: float) -> bool:
@@ -175,7 +153,7 @@ class PoseEKF:
             raise ValueError(f"initial pose must be finite, got {(x, y, yaw)}")
         self.cfg = cfg
         self._kf = _UnicycleEKF(dim_x=5, dim_z=2)
-        self._kf.x = np.array([[x], [y], [_wrap(yaw)], [0.0], [0.0]])
+        self._kf.x = np.array([[x], [y], [wrap(yaw)], [0.0], [0.0]])
         self._kf.P = np.diag([cfg.init_pos_std ** 2, cfg.init_pos_std ** 2, cfg.init_yaw_std ** 2,
                               cfg.init_v_std ** 2, cfg.init_w_std ** 2])
         self.rejected_fixes = 0
@@ -248,7 +226,7 @@ class PoseEKF:
     def pose(self) -> Pose:
         """The current estimate as a Pose (yaw in (-pi, pi])."""
         x = self._kf.x[:, 0]
-        return Pose(float(x[IX]), float(x[IY]), _wrap(float(x[IYAW])), float(x[IV]), float(x[IW]))
+        return Pose(float(x[IX]), float(x[IY]), wrap(float(x[IYAW])), float(x[IV]), float(x[IW]))
 
     @property
     def cov_trace(self) -> float:
@@ -288,6 +266,6 @@ class PoseEKF:
             kf.x, kf.P = x0, P0
             self.rejected_nan += 1
             return False
-        kf.x[IYAW, 0] = _wrap(float(kf.x[IYAW, 0]))
+        kf.x[IYAW, 0] = wrap(float(kf.x[IYAW, 0]))
         kf.P = 0.5 * (kf.P + kf.P.T)                    # keep P symmetric
         return True

@@ -1,9 +1,12 @@
-"""The pose type and angle wrapping shared by the estimators."""
+"""The pose type shared by the estimators, and the angle wrap (the one copy in :mod:`stack.models.geometry`)."""
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+
+from ..models.geometry import wrap
+
+__all__ = ["Pose", "wrap"]
 
 
 @dataclass
@@ -14,8 +17,3 @@ class Pose:
     v: float = 0.0
     w: float = 0.0
 
-
-def wrap(a: float) -> float:
-    """Angle to (-pi, pi]."""
-    a = math.atan2(math.sin(a), math.cos(a))
-    return a if a > -math.pi else math.pi

@@ -6,7 +6,7 @@ seven times faster than against cylinders (what is drawn in the GUI is still a c
 
 Robots are kinematic differential-drive bodies: a command (v, w) becomes left/right wheel
 speeds, each limited in acceleration, and the body moves by the unicycle model (exact arc)
-from the resulting wheel speeds. pybullet holds the geometry: every lidar ray is a real
+from the resulting wheel speeds (:mod:`stack.models.kinematics`, the training worlds' and the EKF's model). pybullet holds the geometry: every lidar ray is a real
 ``rayTestBatch`` against the obstacles and the other robots' bodies. Collisions are not
 resolved physically; they are measured (centre distances, INTERFACES.md section 3).
 """
@@ -17,6 +17,8 @@ import math
 
 import numpy as np
 import pybullet as p
+
+from ..models.kinematics import arc_step, arc_step_array, body_rates, ramp, wheel_speeds
 
 ROBOT_HEIGHT = 0.4
 OBSTACLE_HEIGHT = 1.0
@@ -41,6 +43,9 @@ class World:
         self.v = np.zeros(n)
         self.w = np.zeros(n)
         self.radii = np.array([r.radius for r in scenario.robots], float)
+        self.track = np.array([r.base.track for r in scenario.robots], float)
+        self.wheel_radius = np.array([r.base.wheel_radius for r in scenario.robots], float)
+        self.wheel_accel = np.array([r.base.wheel_accel for r in scenario.robots], float)
         # each base's dead-reckoned pose from its own (noisy) encoder speeds, as a real base's odometry reports it
         self.odo_pose = np.column_stack([self.x, self.y, self.yaw]).astype(float)
         self.obstacle_bodies = [self._add_obstacle(o) for o in scenario.obstacles]
@@ -97,27 +102,13 @@ class World:
 
         Robots in ``exact`` move with their (v, w) as given: a hosted device (an ODrive pair, a
         rover's autopilot) already ramped its actuators, and the body follows them."""
-        for rid, i in self.index.items():
-            r = self.sc.robots[i]
-            b = r.base
-            v_c, w_c = commands.get(rid, (0.0, 0.0))
-            # differential drive inverse kinematics: wheel angular speeds for (v, w)
-            wl_t = (v_c - w_c * b.track / 2) / b.wheel_radius
-            wr_t = (v_c + w_c * b.track / 2) / b.wheel_radius
-            dmax = math.inf if rid in exact else b.wheel_accel * dt
-            self.wl[i] += max(-dmax, min(dmax, wl_t - self.wl[i]))
-            self.wr[i] += max(-dmax, min(dmax, wr_t - self.wr[i]))
-            v = b.wheel_radius * (self.wr[i] + self.wl[i]) / 2
-            w = b.wheel_radius * (self.wr[i] - self.wl[i]) / b.track
-            th = self.yaw[i]
-            if abs(w) < 1e-9:
-                self.x[i] += v * dt * math.cos(th)
-                self.y[i] += v * dt * math.sin(th)
-            else:
-                self.x[i] += v / w * (math.sin(th + w * dt) - math.sin(th))
-                self.y[i] -= v / w * (math.cos(th + w * dt) - math.cos(th))
-            self.yaw[i] = math.atan2(math.sin(th + w * dt), math.cos(th + w * dt))
-            self.v[i], self.w[i] = v, w
+        v_c = np.array([commands.get(rid, (0.0, 0.0))[0] for rid in self.ids], float)
+        w_c = np.array([commands.get(rid, (0.0, 0.0))[1] for rid in self.ids], float)
+        wl_t, wr_t = wheel_speeds(v_c, w_c, self.track, self.wheel_radius)  # inverse kinematics
+        dmax = np.where([rid in exact for rid in self.ids], math.inf, self.wheel_accel * dt)
+        self.wl[:], self.wr[:] = ramp(self.wl, wl_t, dmax), ramp(self.wr, wr_t, dmax)
+        self.v[:], self.w[:] = body_rates(self.wl, self.wr, self.track, self.wheel_radius)
+        self.x[:], self.y[:], self.yaw[:] = arc_step_array(self.x, self.y, self.yaw, self.v, self.w, dt)
         self._sync_bodies()
 
     # --- sensors -----------------------------------------------------------------------
@@ -213,9 +204,7 @@ class World:
         v = float(self.v[i] + (self.rng.normal(0, v_std) if v_std > 0 else 0.0))
         w = float(self.w[i] + (self.rng.normal(0, w_std) if w_std > 0 else 0.0))
         x, y, yaw = (float(a) for a in self.odo_pose[i])
-        mid = yaw + 0.5 * w * dt
-        self.odo_pose[i] = (x + v * math.cos(mid) * dt, y + v * math.sin(mid) * dt,
-                            math.atan2(math.sin(yaw + w * dt), math.cos(yaw + w * dt)))
+        self.odo_pose[i] = arc_step(x, y, yaw, v, w, dt)
         return v, w, (x, y, yaw)
 
     def gyro(self, rid: int) -> float:

@@ -26,54 +26,101 @@ import argparse
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..argtypes import nonnegative_float, nonnegative_int, positive_int
 from . import InputError
+from .flags import add_job_arguments, flag, job_from_args
 
 HELD_OUT_SEED = 20261
 
 
 @dataclass
 class DrlJob:
-    """What ``stack-train drl`` runs; defaults are Table I where our setting can follow it."""
+    """What ``stack-train drl`` runs; defaults are Table I where our setting can follow it.
 
-    stage: int = 1
+    The command line is generated from these fields (``--field-name``, the docstring as help:
+    :mod:`stack.train.flags`), so a setting is written once, here."""
+
+    stage: int = flag(1, choices=(1, 2))
+    """curriculum stage: 1 one robot among obstacles, 2 four robots (one trained, the others on a frozen copy)"""
     out: Path = Path("runs/drl")
-    episodes: int = 5000  # section V-A: max-episodes 5000 (stage 1), 10000 (stage 2)
-    envs: int = 16  # environments stepped together (the paper: one gazebo world)
-    batch: int = 128  # Table I: 32
-    memory: int = 100_000  # Table I: 2000
-    gamma: float = 0.99  # Table I
-    lr: float = 1e-3  # Table I (Adam)
-    target_every: int = 500  # Table I C, in gradient steps
-    copy_every: int = 10_000  # Table I N, in trained-robot transitions (stage 2)
-    eps_start: float | None = None  # None: 1.0 (stage 1), 0.5 (stage 2)
+    """output folder (drl.pt, best.pt, drl.json, reward.png)"""
+    init: Path | None = flag(None, metavar="WEIGHTS")
+    """start from these weights (stage 2: the stage-1 drl.pt)"""
+    evaluate: Path | None = flag(None, metavar="WEIGHTS")
+    """only evaluate these weights on the held-out scenes (no training)"""
+    episodes: int | None = flag(None, type=positive_int)
+    """max-episodes (section V-A; None: 5000 in stage 1, 10000 in stage 2)"""
+    envs: int = flag(16, type=positive_int)
+    """environments stepped together (the paper: one gazebo world)"""
+    batch: int = flag(128, type=positive_int)
+    """minibatch (Table I: 32)"""
+    memory: int = flag(100_000, type=positive_int)
+    """replay memory (Table I: 2000)"""
+    gamma: float = 0.99
+    """discount (Table I)"""
+    lr: float = 1e-3
+    """Adam learning rate (Table I)"""
+    target_every: int = flag(500, type=positive_int)
+    """C of Table I: gradient steps between target-network copies"""
+    copy_every: int = flag(10_000, type=positive_int)
+    """N of Table I: trained-robot transitions between copies to the other robots (stage 2)"""
+    eps_start: float | None = None
+    """initial epsilon (None: 1.0 in stage 1, 0.5 in stage 2)"""
     eps_end: float = 0.1
-    eps_fraction: float | None = None  # of the episodes over which epsilon falls: 3000/5000, 7000/10000
-    learn_start: int = 1000  # transitions before the first update
-    updates_per_step: int = 1  # gradient steps per parallel step (of ``envs`` transitions)
-    n_step: int = 1  # n-step returns (1: eq. 18 as printed)
-    huber: bool = True  # Huber instead of the squared TD error of Algorithm 1
-    grad_clip: float = 10.0
-    max_steps: int = 500  # Table I max-step
-    time_penalty: float = 0.0  # ours: reward per step that does not arrive is lowered by this (0: eq. 14-17)
-    stall_steps: int = 0  # ours: standing (moving < 0.1 m) this many steps ends the episode with -1 (0: off)
-    robots: int = 4  # stage 2: robots per scene (the paper: four)
-    max_walls: int = 2  # walls across the way per scene, 0..max_walls (0: the paper's cuboids and cylinders)
+    """final epsilon"""
+    eps_fraction: float | None = None
+    """fraction of the episodes over which epsilon falls (None: 0.6 in stage 1, 0.7 in stage 2)"""
+    learn_start: int = flag(1000, type=nonnegative_int)
+    """transitions in the replay memory before the first update"""
+    updates_per_step: int = flag(1, type=positive_int)
+    """gradient steps per parallel step (of ``envs`` transitions)"""
+    n_step: int = flag(1, type=positive_int)
+    """n-step returns (1: eq. 18 as printed)"""
+    huber: bool = flag(True, off="--mse")
+    """Huber loss instead of the squared TD error of Algorithm 1 (--mse: squared)"""
+    grad_clip: float = flag(10.0, type=nonnegative_float)
+    """gradient-norm clip"""
+    max_steps: int = flag(500, type=positive_int)
+    """max-step per episode (Table I)"""
+    time_penalty: float = flag(0.0, type=nonnegative_float)
+    """ours: subtract this from every step's reward until arrival (0: eq. 14-17 as printed)"""
+    stall_steps: int = flag(0, type=nonnegative_int)
+    """ours: end an episode with -1 when the robot has moved < 0.1 m in this many steps (0: off)"""
+    robots: int = flag(4, choices=range(2, 9), metavar="N")
+    """stage 2: robots per scene, 2..8 (the paper: four)"""
+    max_walls: int = flag(2, name="--walls", choices=range(0, 4), metavar="N")
+    """walls (2-10 m, across the way) per training / held-out scene, 0..N (0: the paper's randomly scattered
+    cuboids and cylinders)"""
     seed: int = 0
-    init: Path | None = None
+    """seed of the worlds, the exploration and torch"""
     max_minutes: float | None = None
-    stop_after: int | None = None  # stop after this many episodes (the epsilon schedule still spans ``episodes``)
+    """stop (and save, and evaluate) after this wall time"""
+    stop_after: int | None = flag(None, type=positive_int, metavar="EPISODES")
+    """stop after this many episodes (the epsilon schedule still spans --episodes): replays a run cut by
+    --max-minutes"""
     checkpoint_minutes: float = 3.0
-    eval_episodes: int = 200
-    threads: int = 1
+    """write drl.pt this often"""
+    eval_episodes: int = flag(200, type=nonnegative_int)
+    """held-out episodes at the end (0: none)"""
+    eval_seed: int = HELD_OUT_SEED
+    """the held-out scenes' seed (another one: a fresh set nobody chose weights on)"""
+    threads: int = flag(1, type=positive_int)
+    """torch threads"""
     progress: bool = True
+    """a live progress bar"""
     plots: bool = True
-    extra: dict = field(default_factory=dict)
+    """write reward.png"""
+    extra: dict = flag(default_factory=dict, cli=False)
+    """free-form notes carried into drl.json"""
+
+    def __post_init__(self) -> None:
+        if self.episodes is None:
+            self.episodes = 5000 if self.stage == 1 else 10000
 
     def epsilon(self, episode: int) -> float:
         e0 = self.eps_start if self.eps_start is not None else (1.0 if self.stage == 1 else 0.5)
@@ -252,125 +299,167 @@ def evaluate(net, *, stage: int = 1, episodes: int = 200, seed: int = HELD_OUT_S
 
 
 # --- training ----------------------------------------------------------------------------------------
-def train(job: DrlJob, log=print) -> dict:
-    import torch
+class _Training:
+    """One run of Algorithm 1: the world, the learner, the frozen copy (stage 2), the curve."""
 
-    from stack.policies.drl.network import DuelingQNet
-    from stack.policies.drl.observation import ACTIONS, N_ACTIONS
+    def __init__(self, job: DrlJob, log):
+        import torch
 
-    from .drlworld import DrlWorld, WorldConfig
+        from stack.policies.drl.network import DuelingQNet
+        from stack.policies.drl.observation import ACTIONS
 
-    torch.set_num_threads(job.threads)
-    torch.manual_seed(job.seed)
-    rng = np.random.default_rng(job.seed)
-    job.out.mkdir(parents=True, exist_ok=True)
-    net = DuelingQNet()
-    if job.init:
-        net.load_state_dict(torch.load(job.init, map_location="cpu", weights_only=True))
-    L = Learner(job, net)
-    frozen = DuelingQNet()  # theta~ of the other robots (stage 2)
-    frozen.load_state_dict(net.state_dict())
-    world = DrlWorld(job.envs, job.stage, seed=job.seed, cfg=WorldConfig(max_steps=job.max_steps, time_penalty=job.time_penalty,
-                                                                 stall_steps=job.stall_steps, max_walls=job.max_walls,
-                                                                 robots=job.robots))
-    N, R = world.N, world.R
-    D = Replay(job.memory, world.cfg.beams, R - 1, rng)
-    rows = np.arange(N)
-    ep_return = np.zeros(N)
-    curve: list[dict] = []
-    losses: list[float] = []
-    best, since_copy, steps, episode = -math.inf, 0, 0, 0
-    t0 = last_ckpt = time.monotonic()
-    bar = None
-    if job.progress:
-        from tqdm import tqdm
+        from .drlworld import DrlWorld, WorldConfig
 
-        bar = tqdm(total=job.episodes, desc=f"drl stage {job.stage}", unit="ep", dynamic_ncols=True, mininterval=2.0)
+        self.torch, self.job, self.log, self.actions = torch, job, log, ACTIONS
+        torch.set_num_threads(job.threads)
+        torch.manual_seed(job.seed)
+        self.rng = np.random.default_rng(job.seed)
+        job.out.mkdir(parents=True, exist_ok=True)
+        net = DuelingQNet()
+        if job.init:
+            net.load_state_dict(torch.load(job.init, map_location="cpu", weights_only=True))
+        self.L = Learner(job, net)
+        self.frozen = DuelingQNet()  # theta~ of the other robots (stage 2)
+        self.frozen.load_state_dict(net.state_dict())
+        self.world = DrlWorld(job.envs, job.stage, seed=job.seed, cfg=WorldConfig(
+            max_steps=job.max_steps, time_penalty=job.time_penalty, stall_steps=job.stall_steps,
+            max_walls=job.max_walls, robots=job.robots))
+        self.N, self.R = self.world.N, self.world.R
+        self.D = Replay(job.memory, self.world.cfg.beams, self.R - 1, self.rng)
+        self.nstep = NStep(self.D, job.n_step, job.gamma, self.N)
+        self.rows = np.arange(self.N)
+        self.ep_return = np.zeros(self.N)
+        self.curve: list[dict] = []
+        self.losses: list[float] = []
+        self.best, self.since_copy, self.steps, self.episode = -math.inf, 0, 0, 0
+        self.t0 = self.last_ckpt = time.monotonic()
+        self.bar = None
+        if job.progress:
+            from tqdm import tqdm
 
-    def save(path: Path) -> None:
-        torch.save(L.q.state_dict(), path)
+            self.bar = tqdm(total=job.episodes, desc=f"drl stage {job.stage}", unit="ep", dynamic_ncols=True, mininterval=2.0)
 
-    nstep = NStep(D, job.n_step, job.gamma, N)
-    obs = world.observe()
-    while episode < job.episodes:
-        if job.max_minutes and time.monotonic() - t0 > 60 * job.max_minutes:
-            log(f"time limit: {job.max_minutes} min reached after {episode} episodes")
-            break
-        if job.stop_after and episode >= job.stop_after:
-            break
-        eps = job.epsilon(episode)
-        tr = world.trained
+    def save(self, path: Path) -> None:
+        self.torch.save(self.L.q.state_dict(), path)
+
+    def act(self, obs: dict, eps: float) -> tuple[np.ndarray, np.ndarray, dict]:
+        """(actions (N, R), the trained robots' actions (N,), their observations): epsilon-greedy on theta for
+        the trained robot of each environment, greedy on theta~ for the others."""
+        N, R, rows, tr = self.N, self.R, self.rows, self.world.trained
         o = pick(obs, rows, tr)
-        a_tr = greedy(L.q, o, torch)
-        explore = rng.random(N) < eps
-        a_tr[explore] = rng.integers(0, N_ACTIONS, explore.sum())
+        a_tr = greedy(self.L.q, o, self.torch)
+        explore = self.rng.random(N) < eps
+        a_tr[explore] = self.rng.integers(0, len(self.actions), explore.sum())
         actions = np.zeros((N, R), np.int64)
         if R > 1:
             others = np.ones((N, R), bool)
             others[rows, tr] = False
             rr, cc = np.nonzero(others)
-            actions[rr, cc] = greedy(frozen, pick(obs, rr, cc), torch)
+            actions[rr, cc] = greedy(self.frozen, pick(obs, rr, cc), self.torch)
         actions[rows, tr] = a_tr
-        r, arrived, collided, done, timeout = world.step(actions, ACTIONS)
-        obs2 = world.observe()
-        term = (arrived[rows, tr] | collided[rows, tr] | world.stalled[rows, tr]).astype(np.float32)
-        o2 = pick(obs2, rows, tr)
-        nstep.push(o, a_tr, r[rows, tr], o2, term, done)
-        ep_return += r[rows, tr]
-        steps += N
-        since_copy += N
+        return actions, a_tr, o
+
+    def step(self, obs: dict, eps: float) -> tuple[dict, np.ndarray]:
+        """One parallel step: act, store the trained robots' transitions, close the finished episodes."""
+        w, rows, tr = self.world, self.rows, self.world.trained
+        actions, a_tr, o = self.act(obs, eps)
+        r, arrived, collided, done, _ = w.step(actions, self.actions)
+        obs2 = w.observe()
+        term = (arrived[rows, tr] | collided[rows, tr] | w.stalled[rows, tr]).astype(np.float32)
+        self.nstep.push(o, a_tr, r[rows, tr], pick(obs2, rows, tr), term, done)
+        self.ep_return += r[rows, tr]
+        self.steps += self.N
+        self.since_copy += self.N
         for n in np.nonzero(done)[0]:
-            episode += 1
+            self.episode += 1
             outcome = ("arrived" if arrived[n, tr[n]] else "collided" if collided[n, tr[n]]
-                       else "stalled" if world.stalled[n, tr[n]] else "timeout")
-            curve.append({"episode": episode, "return": round(float(ep_return[n]), 3), "outcome": outcome,
-                          "steps": int(world.t[n]), "epsilon": round(eps, 4)})
+                       else "stalled" if w.stalled[n, tr[n]] else "timeout")
+            self.curve.append({"episode": self.episode, "return": round(float(self.ep_return[n]), 3), "outcome": outcome,
+                               "steps": int(w.t[n]), "epsilon": round(eps, 4)})
         if done.any():
-            ep_return[done] = 0.0
-            world.reset(done)
-            obs2 = world.observe()
-        obs = obs2
-        if D.n >= max(job.learn_start, job.batch):
+            self.ep_return[done] = 0.0
+            w.reset(done)
+            obs2 = w.observe()
+        return obs2, done
+
+    def learn(self) -> None:
+        """Gradient steps once the memory holds enough; theta~ = theta every N transitions (stage 2)."""
+        job = self.job
+        if self.D.n >= max(job.learn_start, job.batch):
             for _ in range(job.updates_per_step):
-                losses.append(L.update(D.sample(job.batch)))
-        if R > 1 and since_copy >= job.copy_every:
-            frozen.load_state_dict(L.q.state_dict())  # every N steps theta~ = theta
-            since_copy = 0
-        if curve and done.any():
-            recent = curve[-50:]
-            mean50 = float(np.mean([c["return"] for c in recent]))
-            if len(curve) >= 50 and eps <= job.eps_end + 1e-9 and mean50 > best:
-                best = mean50
-                save(job.out / "best.pt")
-            if bar is not None:
-                bar.n = min(episode, job.episodes)
-                succ = np.mean([c["outcome"] == "arrived" for c in recent])
-                bar.set_postfix(eps=f"{eps:.2f}", reward50=f"{mean50:.2f}", success50=f"{succ:.2f}",
-                                loss=f"{np.mean(losses[-100:]) if losses else 0:.3f}",
-                                steps_s=f"{steps / (time.monotonic() - t0):.0f}", refresh=False)
-                bar.update(0)
-        if time.monotonic() - last_ckpt > 60 * job.checkpoint_minutes:
-            save(job.out / "drl.pt")
-            _write_json(job, curve, losses, steps, time.monotonic() - t0, None)
-            last_ckpt = time.monotonic()
-    if bar is not None:
-        bar.close()
-    wall = time.monotonic() - t0
-    save(job.out / "drl.pt")
-    log(f"{episode} episodes, {steps} env steps in {wall:.0f} s ({steps / wall:.0f} env steps/s), {L.steps} gradient steps")
-    ev = None
-    if job.eval_episodes:
-        ev = {"drl.pt": evaluate(L.q, stage=job.stage, episodes=job.eval_episodes, max_steps=job.max_steps, max_walls=job.max_walls, robots=job.robots)}
-        if (job.out / "best.pt").exists():
-            b = DuelingQNet()
-            b.load_state_dict(torch.load(job.out / "best.pt", weights_only=True))
-            ev["best.pt"] = evaluate(b, stage=job.stage, episodes=job.eval_episodes, max_steps=job.max_steps, max_walls=job.max_walls, robots=job.robots)
-        for k, v in ev.items():
-            log(f"held-out {k}: success {v['success']:.3f}, collision {v['collision']:.3f}, timeout {v['timeout']:.3f}")
-    summary = _write_json(job, curve, losses, steps, wall, ev)
-    if job.plots:
-        _plot(curve, job.out / "reward.png", job.stage)
-    return summary
+                self.losses.append(self.L.update(self.D.sample(job.batch)))
+        if self.R > 1 and self.since_copy >= job.copy_every:
+            self.frozen.load_state_dict(self.L.q.state_dict())  # every N steps theta~ = theta
+            self.since_copy = 0
+
+    def report(self, eps: float) -> None:
+        """After episodes ended: best.pt on a new best 50-episode mean (epsilon at its floor), the progress bar."""
+        recent = self.curve[-50:]
+        mean50 = float(np.mean([c["return"] for c in recent]))
+        if len(self.curve) >= 50 and eps <= self.job.eps_end + 1e-9 and mean50 > self.best:
+            self.best = mean50
+            self.save(self.job.out / "best.pt")
+        if self.bar is not None:
+            self.bar.n = min(self.episode, self.job.episodes)
+            succ = np.mean([c["outcome"] == "arrived" for c in recent])
+            self.bar.set_postfix(eps=f"{eps:.2f}", reward50=f"{mean50:.2f}", success50=f"{succ:.2f}",
+                                 loss=f"{np.mean(self.losses[-100:]) if self.losses else 0:.3f}",
+                                 steps_s=f"{self.steps / (time.monotonic() - self.t0):.0f}", refresh=False)
+            self.bar.update(0)
+
+    def checkpoint(self) -> None:
+        if time.monotonic() - self.last_ckpt > 60 * self.job.checkpoint_minutes:
+            self.save(self.job.out / "drl.pt")
+            _write_json(self.job, self.curve, self.losses, self.steps, time.monotonic() - self.t0, None)
+            self.last_ckpt = time.monotonic()
+
+    def stop(self) -> bool:
+        job = self.job
+        if job.max_minutes and time.monotonic() - self.t0 > 60 * job.max_minutes:
+            self.log(f"time limit: {job.max_minutes} min reached after {self.episode} episodes")
+            return True
+        return bool(job.stop_after and self.episode >= job.stop_after)
+
+    def run(self) -> dict:
+        obs = self.world.observe()
+        while self.episode < self.job.episodes and not self.stop():
+            eps = self.job.epsilon(self.episode)
+            obs, done = self.step(obs, eps)
+            self.learn()
+            if self.curve and done.any():
+                self.report(eps)
+            self.checkpoint()
+        if self.bar is not None:
+            self.bar.close()
+        return self.finish(time.monotonic() - self.t0)
+
+    def finish(self, wall: float) -> dict:
+        """drl.pt, the held-out evaluation of drl.pt (and best.pt), drl.json, reward.png."""
+        job = self.job
+        self.save(job.out / "drl.pt")
+        self.log(f"{self.episode} episodes, {self.steps} env steps in {wall:.0f} s "
+                 f"({self.steps / wall:.0f} env steps/s), {self.L.steps} gradient steps")
+        ev = None
+        if job.eval_episodes:
+            from stack.policies.drl.network import DuelingQNet
+
+            nets = {"drl.pt": self.L.q}
+            if (job.out / "best.pt").exists():
+                nets["best.pt"] = DuelingQNet()
+                nets["best.pt"].load_state_dict(self.torch.load(job.out / "best.pt", weights_only=True))
+            ev = {k: evaluate(net, stage=job.stage, episodes=job.eval_episodes, max_steps=job.max_steps,
+                              max_walls=job.max_walls, robots=job.robots, seed=job.eval_seed) for k, net in nets.items()}
+            for k, v in ev.items():
+                self.log(f"held-out {k}: success {v['success']:.3f}, collision {v['collision']:.3f}, timeout {v['timeout']:.3f}")
+        summary = _write_json(job, self.curve, self.losses, self.steps, wall, ev)
+        if job.plots:
+            _plot(self.curve, job.out / "reward.png", job.stage)
+        return summary
+
+
+def train(job: DrlJob, log=print) -> dict:
+    """Algorithm 1 as ``job`` says; returns what OUT/drl.json holds."""
+    return _Training(job, log).run()
 
 
 def _write_json(job, curve, losses, steps, wall, ev) -> dict:
@@ -407,46 +496,7 @@ def _plot(curve, path: Path, stage: int) -> None:
 
 # --- command line ----------------------------------------------------------------------------------------
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    j = DrlJob()
-    p.add_argument("--stage", type=int, choices=(1, 2), default=1, help="curriculum stage (default 1)")
-    p.add_argument("--out", type=Path, default=Path("runs/drl"), help="output folder (default runs/drl)")
-    p.add_argument("--init", type=Path, help="start from these weights (stage 2: the stage-1 drl.pt)")
-    p.add_argument("--episodes", type=positive_int, help="max-episodes (default 5000 stage 1, 10000 stage 2)")
-    p.add_argument("--envs", type=positive_int, default=j.envs, help=f"parallel environments (default {j.envs})")
-    p.add_argument("--batch", type=positive_int, default=j.batch, help=f"minibatch (default {j.batch}; Table I: 32)")
-    p.add_argument("--memory", type=positive_int, default=j.memory, help=f"replay memory (default {j.memory}; Table I: 2000)")
-    p.add_argument("--lr", type=float, default=j.lr, help=f"Adam learning rate (default {j.lr:g})")
-    p.add_argument("--gamma", type=float, default=j.gamma, help=f"discount (default {j.gamma:g})")
-    p.add_argument("--target-every", type=positive_int, default=j.target_every, help="C, gradient steps (default 500)")
-    p.add_argument("--copy-every", type=positive_int, default=j.copy_every, help="N, transitions (stage 2, default 10000)")
-    p.add_argument("--eps-start", type=float, help="default 1.0 (stage 1), 0.5 (stage 2)")
-    p.add_argument("--eps-end", type=float, default=j.eps_end, help="default 0.1")
-    p.add_argument("--eps-fraction", type=float, help="fraction of the episodes over which epsilon falls (default 0.6 / 0.7)")
-    p.add_argument("--updates-per-step", type=positive_int, default=j.updates_per_step, help="gradient steps per parallel step")
-    p.add_argument("--n-step", type=positive_int, default=1, help="n-step returns (default 1: eq. 18)")
-    p.add_argument("--mse", action="store_true", help="squared TD error (Algorithm 1) instead of Huber")
-    p.add_argument("--max-steps", type=positive_int, default=j.max_steps, help="max-step per episode (default 500)")
-    p.add_argument("--time-penalty", type=nonnegative_float, default=0.0,
-                   help="subtract this from every step's reward until arrival (default 0: eq. 14-17 as printed)")
-    p.add_argument("--stall-steps", type=nonnegative_int, default=0,
-                   help="end an episode with -1 when the robot has moved < 0.1 m in this many steps (default 0: off)")
-    p.add_argument("--walls", type=int, choices=range(0, 4), default=2, metavar="N",
-                   help="walls (2-10 m, across the way) per training / held-out scene, 0..N (default 2; 0: the paper's "
-                        "randomly scattered cuboids and cylinders)")
-    p.add_argument("--robots", type=int, choices=range(2, 9), default=4, metavar="N",
-                   help="stage 2: robots per scene, 2..8 (default 4, the paper's)")
-    p.add_argument("--max-minutes", type=float, help="stop (and save, and evaluate) after this wall time")
-    p.add_argument("--stop-after", type=positive_int, metavar="EPISODES",
-                   help="stop after this many episodes (the epsilon schedule still spans --episodes): replays a run cut by --max-minutes")
-    p.add_argument("--checkpoint-minutes", type=float, default=j.checkpoint_minutes, help="write drl.pt this often")
-    p.add_argument("--eval-episodes", type=int, default=j.eval_episodes, help="held-out episodes at the end (0: none)")
-    p.add_argument("--evaluate", type=Path, metavar="WEIGHTS", help="only evaluate these weights on the held-out scenes")
-    p.add_argument("--eval-seed", type=int, default=HELD_OUT_SEED,
-                   help=f"the held-out scenes' seed (default {HELD_OUT_SEED}; another one: a fresh set nobody chose weights on)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=positive_int, default=1, help="torch threads (default 1)")
-    p.add_argument("--no-plots", action="store_true")
-    p.add_argument("--no-progress", action="store_true")
+    add_job_arguments(p, DrlJob)  # one flag per DrlJob field
 
 
 def main(args: argparse.Namespace) -> int:
@@ -454,23 +504,16 @@ def main(args: argparse.Namespace) -> int:
 
     from stack.policies.drl.network import DuelingQNet
 
-    if args.evaluate:
-        if not args.evaluate.exists():
-            raise InputError(f"{args.evaluate}: no such weights file")
-        torch.set_num_threads(args.threads)
+    job = job_from_args(DrlJob, args)
+    for path in (job.evaluate, job.init):
+        if path is not None and not path.exists():
+            raise InputError(f"{path}: no such weights file")
+    if job.evaluate:
+        torch.set_num_threads(job.threads)
         net = DuelingQNet()
-        net.load_state_dict(torch.load(args.evaluate, map_location="cpu", weights_only=True))
-        print(json.dumps(evaluate(net, stage=args.stage, episodes=args.eval_episodes or 200, max_steps=args.max_steps,
-                                         max_walls=args.walls, robots=args.robots, seed=args.eval_seed)))
+        net.load_state_dict(torch.load(job.evaluate, map_location="cpu", weights_only=True))
+        print(json.dumps(evaluate(net, stage=job.stage, episodes=job.eval_episodes or 200, max_steps=job.max_steps,
+                                  max_walls=job.max_walls, robots=job.robots, seed=job.eval_seed)))
         return 0
-    if args.init is not None and not args.init.exists():
-        raise InputError(f"{args.init}: no such weights file")
-    job = DrlJob(stage=args.stage, out=args.out, init=args.init, episodes=args.episodes or (5000 if args.stage == 1 else 10000),
-                 envs=args.envs, batch=args.batch, memory=args.memory, lr=args.lr, gamma=args.gamma, target_every=args.target_every,
-                 copy_every=args.copy_every, eps_start=args.eps_start, eps_end=args.eps_end, eps_fraction=args.eps_fraction,
-                 updates_per_step=args.updates_per_step, n_step=args.n_step, huber=not args.mse, max_steps=args.max_steps, time_penalty=args.time_penalty,
-                 stall_steps=args.stall_steps, max_walls=args.walls, robots=args.robots, seed=args.seed,
-                 max_minutes=args.max_minutes, stop_after=args.stop_after, checkpoint_minutes=args.checkpoint_minutes, eval_episodes=args.eval_episodes,
-                 threads=args.threads, progress=not args.no_progress, plots=not args.no_plots)
     train(job)
     return 0

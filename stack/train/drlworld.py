@@ -25,6 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stack.models.geometry import polar_array
+from stack.models.kinematics import arc_step_array, body_rates, ramp, wheel_speeds
+from stack.models.observation import neighbour_polar_array
 from stack.policies.drl.observation import BEAMS, D_COM, N_SCANS, goal_features, neighbour_features
 from stack.policies.drl.reward import R_D, reward
 
@@ -284,23 +287,14 @@ class DrlWorld:
 
     def observe(self) -> dict[str, np.ndarray]:
         """Network inputs for every robot: scans (N, R, 3, B), gv (N, R, 4), nb (N, R, R-1, 2), n_nb (N, R)."""
-        dgx, dgy = self.gx - self.x, self.gy - self.y
-        alpha = np.angle(np.exp(1j * (np.arctan2(dgy, dgx) - self.yaw)))
-        gv = goal_features(np.hypot(dgx, dgy), alpha, self.v, self.w)
+        d_g, alpha = polar_array(self.x, self.y, self.yaw, self.gx, self.gy)  # as the agent's decision layer
+        gv = goal_features(d_g, alpha, self.v, self.w)
         N, R = self.N, self.R
         nb = np.zeros((N, R, max(R - 1, 0), 2), np.float32)
         n_nb = np.zeros((N, R), np.int64)
         if R > 1:
-            d = self._robot_distances()
-            bearing = np.angle(np.exp(1j * (np.arctan2(self.y[:, None] - self.y[:, :, None], self.x[:, None] - self.x[:, :, None])
-                                            - self.yaw[:, :, None])))
-            key = np.where(d <= D_COM, -d, np.inf)  # farthest first, out of range (and self) last
-            order = np.argsort(key, axis=2)[:, :, : R - 1]
-            ds = np.take_along_axis(d, order, 2)
-            bs = np.take_along_axis(bearing, order, 2)
-            n_nb = (np.take_along_axis(key, order, 2) < np.inf).sum(2)
-            nb = neighbour_features(np.stack([ds, bs], -1)).reshape(N, R, R - 1, 2)
-            nb[np.arange(R - 1)[None, None] >= n_nb[..., None]] = 0.0
+            polar, n_nb = neighbour_polar_array(self.x, self.y, self.yaw, D_COM)
+            nb = neighbour_features(polar).reshape(N, R, R - 1, 2)
         return {"scans": self.scans, "gv": gv, "nb": nb, "n_nb": n_nb}
 
     # --- dynamics ----------------------------------------------------------------------
@@ -311,18 +305,11 @@ class DrlWorld:
         a = table[actions].astype(float)  # (N, R, 2)
         a[~self.active] = 0.0
         v_c, w_c = a[..., 0], a[..., 1]
+        wl_t, wr_t = wheel_speeds(v_c, w_c, c.track, c.wheel_radius)  # the pybullet world's drive (stack.models)
         dmax = c.wheel_accel * c.dt
-        self.wl += np.clip((v_c - w_c * c.track / 2) / c.wheel_radius - self.wl, -dmax, dmax)
-        self.wr += np.clip((v_c + w_c * c.track / 2) / c.wheel_radius - self.wr, -dmax, dmax)
-        v = c.wheel_radius * (self.wr + self.wl) / 2
-        w = c.wheel_radius * (self.wr - self.wl) / c.track
-        th = self.yaw
-        small = np.abs(w) < 1e-9
-        ws = np.where(small, 1.0, w)
-        self.x += np.where(small, v * c.dt * np.cos(th), v / ws * (np.sin(th + w * c.dt) - np.sin(th)))
-        self.y += np.where(small, v * c.dt * np.sin(th), -v / ws * (np.cos(th + w * c.dt) - np.cos(th)))
-        self.yaw = np.angle(np.exp(1j * (th + w * c.dt)))
-        self.v, self.w = v, w
+        self.wl, self.wr = ramp(self.wl, wl_t, dmax), ramp(self.wr, wr_t, dmax)
+        self.v, self.w = body_rates(self.wl, self.wr, c.track, c.wheel_radius)
+        self.x, self.y, self.yaw = arc_step_array(self.x, self.y, self.yaw, self.v, self.w, c.dt)
         self.t += 1
         d_now = np.hypot(self.gx - self.x, self.gy - self.y)
         d_rob = self._robot_distances().min(axis=2) if self.R > 1 else np.full((self.N, 1), np.inf)

@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import multiprocessing as mp
 import time
 from functools import partial
@@ -50,6 +49,7 @@ from pathlib import Path
 import numpy as np
 
 from ..argtypes import positive_int
+from ..models.kinematics import arc_step
 
 T_SUC = 4000  # phase 1: steps of a successful BF controller
 V_BF = 0.4  # phase 1: constant speed [m/s]
@@ -90,9 +90,7 @@ def phase1_fitness(vec: np.ndarray) -> float:
         if not (left > D_MIN and left <= D_MAX):
             return 1.0 / max(k, 1)
         w = max(-cfg.w_max, min(cfg.w_max, bf.left(L) / 1.0))  # turn_time 1 s, as the policy
-        x += V_BF * cfg.dt * math.cos(th)
-        y += V_BF * cfg.dt * math.sin(th)
-        th += w * cfg.dt
+        x, y, th = arc_step(x, y, th, V_BF, w, cfg.dt)  # the exact arc of every other world (stack.models)
     return 1.0 / T_SUC
 
 
@@ -202,76 +200,94 @@ def _ship(update: dict) -> Path:
 
 
 def main(args) -> int:
-    from ..policies.fuzzy.mrc import LstmWeights
-    from ..policies.fuzzy.policy import hand_set_params, load_params
+    from ..policies.fuzzy.policy import load_params
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    params = load_params()
+    return _phase1(args, params) if args.phase == 1 else _phase2(args, params)
+
+
+def _phase1(args, params: dict) -> int:
+    """Phase 1: PSO over the left boundary follower's TSK (eq. 20 fitness); OUT/phase1.json, Fig. 9."""
+    from ..policies.fuzzy.policy import hand_set_params
     from ..policies.fuzzy.pso import PsoConfig
     from ..policies.fuzzy.tsk import TSK
 
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    progress = not args.no_progress
-    params = load_params()
-    t0 = time.perf_counter()
-    if args.phase == 1:
-        it = args.iterations or 200
-        start = hand_set_params() if args.init == "hand" else params
-        init = TSK.from_dict(start["bf_left"]).to_vector() if args.init in ("hand", "current") else None
-        lo, hi = _bounds_bf()
-        cfg = PsoConfig(particles=args.particles, iterations=it, target=1.0 / T_SUC)
-        res = _optimise(phase1_fitness, lo, hi, cfg, seed=args.seed, init=init, workers=args.workers,
-                        progress=progress, desc="phase 1 (left BF)")
-        ok = res.best_f <= 1.0 / T_SUC + 1e-12
-        bf = TSK.from_vector(res.best, BF_RULES, 4, 1).to_dict()
-        wall = time.perf_counter() - t0
-        doc = {"phase": 1, "success": ok, "T_control": round(1.0 / res.best_f), "fitness": res.best_f,
-               "iterations": len(res.curve) - 1, "evaluations": res.evaluations, "curve": res.curve,
-               "wall_s": round(wall, 1), "init": args.init or "random", "seed": args.seed, "bf_left": bf}
-        (out / "phase1.json").write_text(json.dumps(doc, indent=1) + "\n")
-        _plot_curve({"left BF": res.curve}, out / "fig9-phase1.png", "f_phase1 = 1 / T_control")
-        print(f"phase 1: {'success' if ok else 'no success'}: T_control {doc['T_control']} steps after "
-              f"{doc['iterations']} iterations ({res.evaluations} evaluations) in {wall:.0f} s; {out / 'phase1.json'}")
-        if args.ship:
-            if ok:
-                meta = f"PSO phase 1, seed {args.seed}: T_control {doc['T_control']} after {doc['iterations']} iterations"
-                print(f"shipped: {_ship({'bf_left': bf, 'meta': {'bf_left': meta}})}")
-            else:
-                print("not shipped: no successful controller")
-        return 0 if ok else 1
-    coords = ["flc", "lstm"] if args.coordinator == "both" else [args.coordinator]
-    it = args.iterations or 50
-    curves, update, summary = {}, {"meta": {}}, {}
+    out, t0 = args.out, time.perf_counter()
     start = hand_set_params() if args.init == "hand" else params
-    for c in coords:
-        t1 = time.perf_counter()
-        if c == "flc":
-            lo, hi = _bounds_sr()
-            init = TSK.from_dict(start["flc_sr"]).to_vector()
+    init = TSK.from_dict(start["bf_left"]).to_vector() if args.init in ("hand", "current") else None
+    lo, hi = _bounds_bf()
+    cfg = PsoConfig(particles=args.particles, iterations=args.iterations or 200, target=1.0 / T_SUC)
+    res = _optimise(phase1_fitness, lo, hi, cfg, seed=args.seed, init=init, workers=args.workers,
+                    progress=not args.no_progress, desc="phase 1 (left BF)")
+    ok = res.best_f <= 1.0 / T_SUC + 1e-12
+    bf = TSK.from_vector(res.best, BF_RULES, 4, 1).to_dict()
+    wall = time.perf_counter() - t0
+    doc = {"phase": 1, "success": ok, "T_control": round(1.0 / res.best_f), "fitness": res.best_f,
+           "iterations": len(res.curve) - 1, "evaluations": res.evaluations, "curve": res.curve,
+           "wall_s": round(wall, 1), "init": args.init or "random", "seed": args.seed, "bf_left": bf}
+    (out / "phase1.json").write_text(json.dumps(doc, indent=1) + "\n")
+    _plot_curve({"left BF": res.curve}, out / "fig9-phase1.png", "f_phase1 = 1 / T_control")
+    print(f"phase 1: {'success' if ok else 'no success'}: T_control {doc['T_control']} steps after "
+          f"{doc['iterations']} iterations ({res.evaluations} evaluations) in {wall:.0f} s; {out / 'phase1.json'}")
+    if args.ship:
+        if ok:
+            meta = f"PSO phase 1, seed {args.seed}: T_control {doc['T_control']} after {doc['iterations']} iterations"
+            print(f"shipped: {_ship({'bf_left': bf, 'meta': {'bf_left': meta}})}")
         else:
-            lo, hi = _bounds_lstm()
-            init = LstmWeights.from_dict(start["lstm"]).to_vector()
-        if args.init == "random":
-            init = None
-        fit = partial(phase2_fitness, coordinator=c, bf_left=params["bf_left"], max_steps=args.max_steps, seed=args.seed)
-        cfg = PsoConfig(particles=args.particles, iterations=it, init_spread=0.3)
-        res = _optimise(fit, lo, hi, cfg, seed=args.seed, init=init, workers=args.workers, progress=progress,
-                        desc=f"phase 2 ({c})")
-        f, spread, complete, cols = phase2_score(res.best, c, params["bf_left"], args.max_steps, args.seed)
-        wall = time.perf_counter() - t1
-        best = (TSK.from_vector(res.best, SR_RULES, 5, 2).to_dict() if c == "flc"
-                else LstmWeights.from_vector(res.best).to_dict())
-        key = "flc_sr" if c == "flc" else "lstm"
-        doc = {"phase": 2, "coordinator": c, "f_phase2": f, "spread_steps": spread, "completion_steps": complete,
-               "collisions": cols, "iterations": it, "evaluations": res.evaluations, "curve": res.curve,
-               "wall_s": round(wall, 1), "seed": args.seed, key: best}
-        (out / f"phase2-{c}.json").write_text(json.dumps(doc, indent=1) + "\n")
-        curves[{"flc": "fuzzy-logic-based MRC", "lstm": "recurrent-based MRC"}[c]] = res.curve
+            print("not shipped: no successful controller")
+    return 0 if ok else 1
+
+
+def _phase2(args, params: dict) -> int:
+    """Phase 2: PSO over each coordinator (eq. 21 fitness); OUT/phase2-<c>.json each, Fig. 9."""
+    from ..policies.fuzzy.policy import hand_set_params
+
+    coords = ["flc", "lstm"] if args.coordinator == "both" else [args.coordinator]
+    start = hand_set_params() if args.init == "hand" else params
+    curves, update = {}, {"meta": {}}
+    for c in coords:
+        key, best, doc = _phase2_one(args, c, start, params["bf_left"])
+        curves[{"flc": "fuzzy-logic-based MRC", "lstm": "recurrent-based MRC"}[c]] = doc["curve"]
         update[key] = best
-        update["meta"][key] = f"PSO phase 2, seed {args.seed}, {it} iterations x {args.particles} particles: " \
-                              f"mean f {f:.1f} (spread {spread}, completion {complete} steps) on the two training tasks"
-        summary[c] = doc
-        print(f"phase 2 ({c}): f_phase2 {f:.1f} (spread {spread} steps, completion {complete} steps per task, {cols} collisions) "
-              f"after {it} iterations in {wall:.0f} s; {out / f'phase2-{c}.json'}")
-    _plot_curve(curves, out / "fig9-phase2.png", "f_phase2 = 10 spread + 0.1 completion")
+        update["meta"][key] = (f"PSO phase 2, seed {args.seed}, {doc['iterations']} iterations x {args.particles} "
+                               f"particles: mean f {doc['f_phase2']:.1f} (spread {doc['spread_steps']}, completion "
+                               f"{doc['completion_steps']} steps) on the two training tasks")
+    _plot_curve(curves, args.out / "fig9-phase2.png", "f_phase2 = 10 spread + 0.1 completion")
     if args.ship:
         print(f"shipped: {_ship(update)}")
     return 0
+
+
+def _phase2_one(args, c: str, start: dict, bf_left: dict) -> tuple[str, dict, dict]:
+    """One coordinator's phase 2 ("flc" or "lstm"): (params key, best params, the OUT/phase2-<c>.json document)."""
+    from ..policies.fuzzy.mrc import LstmWeights
+    from ..policies.fuzzy.pso import PsoConfig
+    from ..policies.fuzzy.tsk import TSK
+
+    t1, it = time.perf_counter(), args.iterations or 50
+    if c == "flc":
+        lo, hi = _bounds_sr()
+        init = TSK.from_dict(start["flc_sr"]).to_vector()
+    else:
+        lo, hi = _bounds_lstm()
+        init = LstmWeights.from_dict(start["lstm"]).to_vector()
+    if args.init == "random":
+        init = None
+    fit = partial(phase2_fitness, coordinator=c, bf_left=bf_left, max_steps=args.max_steps, seed=args.seed)
+    cfg = PsoConfig(particles=args.particles, iterations=it, init_spread=0.3)
+    res = _optimise(fit, lo, hi, cfg, seed=args.seed, init=init, workers=args.workers, progress=not args.no_progress,
+                    desc=f"phase 2 ({c})")
+    f, spread, complete, cols = phase2_score(res.best, c, bf_left, args.max_steps, args.seed)
+    wall = time.perf_counter() - t1
+    best = (TSK.from_vector(res.best, SR_RULES, 5, 2).to_dict() if c == "flc"
+            else LstmWeights.from_vector(res.best).to_dict())
+    key = "flc_sr" if c == "flc" else "lstm"
+    doc = {"phase": 2, "coordinator": c, "f_phase2": f, "spread_steps": spread, "completion_steps": complete,
+           "collisions": cols, "iterations": it, "evaluations": res.evaluations, "curve": res.curve,
+           "wall_s": round(wall, 1), "seed": args.seed, key: best}
+    path = args.out / f"phase2-{c}.json"
+    path.write_text(json.dumps(doc, indent=1) + "\n")
+    print(f"phase 2 ({c}): f_phase2 {f:.1f} (spread {spread} steps, completion {complete} steps per task, {cols} collisions) "
+          f"after {it} iterations in {wall:.0f} s; {path}")
+    return key, best, doc

@@ -3,9 +3,10 @@
 Unicycle robots (v clipped to [0, v_max], w to +-w_max, exact arcs), static obstacles (boxes as
 four segments, circles), a lidar of ``beams`` rays over ``fov`` cast analytically against segments,
 circles and the other robots (discs), optional range noise, and a radio with per-message loss.
-Each robot's policy sees the same :class:`stack.policies.base.Observation` the agent builds (own
-pose exact here: ground truth stands in for the estimate), so the trained parameters are the
-ones the fleet runs. A collision is centre distance < 2 r (robots) or < r to an obstacle
+Each robot's policy sees the same :class:`stack.policies.base.Observation` the agent builds, by the
+same code (:mod:`stack.models.observation`; own pose exact here: ground truth stands in for the
+estimate), and moves by the same exact arc (:mod:`stack.models.kinematics`), so the trained
+parameters are the ones the fleet runs. A collision is centre distance < 2 r (robots) or < r to an obstacle
 surface (the contract's definitions); arrivals are the first step within ``goal_tol`` of the goal.
 """
 
@@ -16,7 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..estimation.pose import wrap as _wrap
+from ..models.kinematics import arc_step_array
+from ..models.observation import STALE_AFTER_S, neighbour_view, observation_fields
 from ..policies.base import Observation
 
 
@@ -129,6 +131,78 @@ class RunResult:
         return None if any(x is None for x in a) else int(max(a))
 
 
+class _Radio:
+    """What each robot last heard of each other one (per-message loss, within ``comm_range``)."""
+
+    def __init__(self, n: int):
+        # receiver -> sender -> (x, y, yaw, v, w, stamp [s], d_goal) as last delivered
+        self.last: list[list[tuple | None]] = [[None] * n for _ in range(n)]
+
+    def reports(self, i: int, k: int, st: np.ndarray, vw: np.ndarray, goals: np.ndarray, cfg: SimConfig,
+                rng: np.random.Generator) -> list[tuple]:
+        """Robot i's reports at step k, (x, y, yaw, v, w, age, d_goal) each, stamped and aged on the
+        step clock k dt as the agent stamps and ages them; those older than STALE_AFTER_S left out."""
+        now, out = k * cfg.dt, []
+        for j in range(len(st)):
+            if j == i:
+                continue
+            d = math.hypot(st[j, 0] - st[i, 0], st[j, 1] - st[i, 1])
+            if d <= cfg.comm_range and rng.random() >= cfg.loss:
+                self.last[i][j] = (st[j, 0], st[j, 1], st[j, 2], vw[j, 0], vw[j, 1], now,
+                                   math.hypot(goals[j, 0] - st[j, 0], goals[j, 1] - st[j, 1]))
+            h = self.last[i][j]
+            if h is not None and now - h[5] <= STALE_AFTER_S:
+                out.append((*h[:5], now - h[5], h[6]))
+        return out
+
+
+def observe(pose: np.ndarray, vw: np.ndarray, goal: tuple[float, float], reports: list[tuple], scan: np.ndarray,
+            cfg: SimConfig) -> Observation:
+    """Robot's Observation from its pose (x, y, yaw; exact here), its (v, w), its goal, its neighbours' reports
+    and one scan: :func:`stack.models.observation.observation_fields`, the agent's decision layer's builder."""
+    x, y, yaw = (float(a) for a in pose)
+    view = neighbour_view((x, y), yaw, reports, cfg.comm_range)
+    return Observation(**observation_fields(x, y, yaw, float(vw[0]), float(vw[1]), (float(goal[0]), float(goal[1])),
+                                            view, scans=scan[None, :], scan_range=cfg.range_max, dt=cfg.dt))
+
+
+def _scan(i: int, st: np.ndarray, world: World, rel: np.ndarray, cfg: SimConfig, rng: np.random.Generator) -> np.ndarray:
+    """Robot i's lidar: the obstacles and the other robots (discs), optional range noise."""
+    others = np.array([(st[j, 0], st[j, 1], cfg.radius) for j in range(len(st)) if j != i]).reshape(-1, 3)
+    circ = np.vstack([world.circ, others]) if len(others) else world.circ
+    scan = ray_cast(st[i, 0], st[i, 1], st[i, 2] + rel, world.segs, circ, cfg.range_max)
+    if cfg.noise_std > 0:
+        scan = np.clip(scan + rng.normal(0, cfg.noise_std, scan.shape), 0.0, cfg.range_max)
+    return scan
+
+
+@dataclass
+class _Contacts:
+    """Collisions (counted once per contact: a rising edge) and the closest approaches of a run."""
+
+    robot: int = 0
+    obstacle: int = 0
+    min_obstacle: float = math.inf
+    min_robot: float = math.inf
+    touching: set = field(default_factory=set)  # robot i (obstacle) or pair (i, j) (robots) in contact now
+
+    def _edge(self, key, now: bool) -> int:
+        new = now and key not in self.touching
+        (self.touching.add if now else self.touching.discard)(key)
+        return int(new)
+
+    def update(self, st: np.ndarray, world: World, cfg: SimConfig) -> None:
+        n = len(st)
+        for i in range(n):
+            so = world.surface_distance(st[i, 0], st[i, 1])
+            self.min_obstacle = min(self.min_obstacle, so)
+            self.obstacle += self._edge(i, so < cfg.radius)
+            for j in range(i + 1, n):
+                dr = math.hypot(st[i, 0] - st[j, 0], st[i, 1] - st[j, 1])
+                self.min_robot = min(self.min_robot, dr)
+                self.robot += self._edge((i, j), dr < 2 * cfg.radius)
+
+
 def run(world: World, robots: list[RobotSpec], policies: list, cfg: SimConfig | None = None, *, seed: int = 0,
         record: bool = False, stop_on_collision: bool = False) -> RunResult:
     """All robots to their goals (until every robot has arrived or ``max_steps``)."""
@@ -139,85 +213,29 @@ def run(world: World, robots: list[RobotSpec], policies: list, cfg: SimConfig | 
     vw = np.zeros((n, 2))
     goals = np.array([r.goal for r in robots], float)
     rel = np.linspace(-cfg.fov / 2, cfg.fov / 2, cfg.beams)
-    last_heard = [[None] * n for _ in range(n)]  # receiver -> sender -> (x, y, yaw, v) as last delivered
+    radio, contacts = _Radio(n), _Contacts()
     arrivals: list[int | None] = [None] * n
-    col_r = col_o = 0
-    in_col_r, in_col_o = set(), set()
-    min_o, min_r = math.inf, math.inf
     traj = [] if record else None
     for p in policies:
         p.reset()
     k = 0
     for k in range(cfg.max_steps):
         for i in range(n):
-            others = np.array([(st[j, 0], st[j, 1], cfg.radius) for j in range(n) if j != i]).reshape(-1, 3)
-            circ = np.vstack([world.circ, others]) if len(others) else world.circ
-            scan = ray_cast(st[i, 0], st[i, 1], st[i, 2] + rel, world.segs, circ, cfg.range_max)
-            if cfg.noise_std > 0:
-                scan = np.clip(scan + rng.normal(0, cfg.noise_std, scan.shape), 0.0, cfg.range_max)
-            nbs, states, d_goals = [], [], []
-            for j in range(n):
-                if j == i:
-                    continue
-                d = math.hypot(st[j, 0] - st[i, 0], st[j, 1] - st[i, 1])
-                if d <= cfg.comm_range and rng.random() >= cfg.loss:
-                    last_heard[i][j] = (st[j, 0], st[j, 1], st[j, 2], vw[j, 0], k, vw[j, 1],
-                                        math.hypot(goals[j, 0] - st[j, 0], goals[j, 1] - st[j, 1]))
-                h = last_heard[i][j]
-                if h is None or (k - h[4]) * cfg.dt > 3.0:
-                    continue
-                age = min(1.0, (k - h[4]) * cfg.dt)  # the agent extrapolates at most 1 s along the reported velocity
-                hx, hy = h[0] + h[3] * math.cos(h[2]) * age, h[1] + h[3] * math.sin(h[2]) * age
-                dd = math.hypot(hx - st[i, 0], hy - st[i, 1])
-                nbs.append((dd, _wrap(math.atan2(hy - st[i, 1], hx - st[i, 0]) - st[i, 2])))
-                states.append((h[0], h[1], h[2], h[3], h[5], (k - h[4]) * cfg.dt))  # as the agent's DecisionLayer
-                d_goals.append(h[6])
-            nbs.sort(reverse=True)
-            gx, gy = goals[i]
-            obs = Observation(d_g=math.hypot(gx - st[i, 0], gy - st[i, 1]),
-                              alpha_g=_wrap(math.atan2(gy - st[i, 1], gx - st[i, 0]) - st[i, 2]),
-                              v=vw[i, 0], w=vw[i, 1], neighbours=np.array(nbs, float).reshape(-1, 2),
-                              scans=scan[None, :], yaw=st[i, 2], scan_range=cfg.range_max, dt=cfg.dt,
-                              x=st[i, 0], y=st[i, 1], target=(gx, gy),
-                              neighbour_states=np.array(states, float).reshape(-1, 6), neighbour_d_goal=np.array(d_goals, float))
+            scan = _scan(i, st, world, rel, cfg, rng)
+            obs = observe(st[i], vw[i], goals[i], radio.reports(i, k, st, vw, goals, cfg, rng), scan, cfg)
             v, w = policies[i].act(obs)
             vw[i] = (min(max(v, 0.0), cfg.v_max), min(max(w, -cfg.w_max), cfg.w_max))
-        # integrate (exact arc)
-        for i in range(n):
-            v, w = vw[i]
-            th = st[i, 2]
-            if abs(w) < 1e-9:
-                st[i, 0] += v * cfg.dt * math.cos(th)
-                st[i, 1] += v * cfg.dt * math.sin(th)
-            else:
-                st[i, 0] += v / w * (math.sin(th + w * cfg.dt) - math.sin(th))
-                st[i, 1] -= v / w * (math.cos(th + w * cfg.dt) - math.cos(th))
-            st[i, 2] = _wrap(th + w * cfg.dt)
+        st[:, 0], st[:, 1], st[:, 2] = arc_step_array(st[:, 0], st[:, 1], st[:, 2], vw[:, 0], vw[:, 1], cfg.dt)
         if record:
             traj.append(st.copy())
+        contacts.update(st, world, cfg)
         for i in range(n):
-            so = world.surface_distance(st[i, 0], st[i, 1])
-            min_o = min(min_o, so)
-            if so < cfg.radius:
-                if i not in in_col_o:
-                    col_o += 1
-                in_col_o.add(i)
-            else:
-                in_col_o.discard(i)
-            for j in range(i + 1, n):
-                dr = math.hypot(st[i, 0] - st[j, 0], st[i, 1] - st[j, 1])
-                min_r = min(min_r, dr)
-                if dr < 2 * cfg.radius:
-                    if (i, j) not in in_col_r:
-                        col_r += 1
-                    in_col_r.add((i, j))
-                else:
-                    in_col_r.discard((i, j))
             if arrivals[i] is None and math.hypot(st[i, 0] - goals[i, 0], st[i, 1] - goals[i, 1]) <= cfg.goal_tol:
                 arrivals[i] = k + 1
-        if all(a is not None for a in arrivals) or (stop_on_collision and (col_r or col_o)):
+        if all(a is not None for a in arrivals) or (stop_on_collision and (contacts.robot or contacts.obstacle)):
             break
-    return RunResult(arrivals, col_r, col_o, min_o, min_r, k + 1, np.array(traj) if record else None)
+    return RunResult(arrivals, contacts.robot, contacts.obstacle, contacts.min_obstacle, contacts.min_robot, k + 1,
+                     np.array(traj) if record else None)
 
 
 def sectors_world(x: float, y: float, yaw: float, world: World, cfg: SimConfig) -> np.ndarray:

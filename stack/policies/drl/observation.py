@@ -7,7 +7,9 @@
   o_z       the last three scans of 180 beams, divided by d_scan = 5 m
 
 Everything here is numpy and works on one observation or on a batch (leading axes), so the
-training world (:mod:`stack.train.drlworld`) and the onboard policy normalise the same way.
+training world (:mod:`stack.train.drlworld`) and the onboard policy normalise the same way; the
+raw distances and bearings they normalise come from one builder too (:mod:`stack.models.observation`,
+``tests/test_models.py`` checks that both give the same network inputs).
 """
 
 from __future__ import annotations
