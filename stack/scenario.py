@@ -20,6 +20,7 @@ from typing import Any
 import yaml
 
 from . import settings
+from .models.geometry import slot_offset as _offset, slot_position  # eq. (3): the one copy
 from .settings import kind as _kind
 
 ROLES = ("leader", "follower")
@@ -228,10 +229,6 @@ class FormationConfig:
             dx, dy = x - ox, y - oy
             out[r] = Slot(L=math.hypot(dx, dy), psi=math.atan2(dy, dx))
         return new, out
-
-
-def _offset(s: Slot) -> tuple[float, float]:
-    return s.L * math.cos(s.psi), s.L * math.sin(s.psi)
 
 
 @dataclass(frozen=True)
@@ -771,10 +768,6 @@ def fix_due(robot: RobotConfig, step: int, dt: float) -> bool:
     """Whether the robot's (simulated) position fix is sent at this step: every round(1 / (rate dt)) steps."""
     return robot.fix is not None and step % max(1, round(1.0 / (robot.fix[0] * dt))) == 0
 
-
-def slot_position(leader_xy: tuple[float, float], slot: Slot) -> tuple[float, float]:
-    """Bai 2022 eq. (3): x_F^g = x_L + L cos(psi), y_F^g = y_L + L sin(psi)."""
-    return leader_xy[0] + slot.L * math.cos(slot.psi), leader_xy[1] + slot.L * math.sin(slot.psi)
 
 
 def summary(sc: Scenario) -> dict:
