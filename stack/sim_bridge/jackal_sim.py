@@ -18,7 +18,7 @@ step per 20 ms tick), and the J100's ``cmd_vel`` timeout of 0.5 s: a target olde
 (device time) becomes zero. Velocity limits act on the body speeds, as the controller's
 speed limiter does, so wheel separation and radius do not enter.
 
-Odometry: ``report`` publishes one message per world step at the end of the step (lock-step),
+Odometry, ideal (the default, ``device: {ideal: true}``): ``report`` publishes one message per world step at the end of the step (lock-step),
 stamped with the device time; before lock-step (and all along in real time) a thread
 publishes at 50 Hz from the newest body the world reported, stamped with the wall-clock
 device time, so a driver can open and see odometry. The pose is the body's pose in the
