@@ -26,6 +26,13 @@ Lifecycle, driven by the world (``WorldServer``):
    calls only sync the body.
 4. ``close()``: the device is gone (the endpoint disappears).
 
+Each device has a typed config (``config_class``, a ``DeviceConfig``): how real the device is.
+``ideal: true`` (the default for now) keeps the kind simulator (world-frame odometry, one
+sample per step); ``ideal: false`` turns on what real hardware does (the device's own frames,
+rates, clock and losses; see each device's config). The settings come from the robot's
+``device:`` mapping in the scenario (``device=`` here overrides it); unknown keys and bad
+values are a one-line ``DeviceError`` naming the robot and the field.
+
 Devices are made by driver name from the drivers' registry (each record names its device; lazy imports).
 ``driver_params(robot_id)`` tells the fleet what to hand the agent's driver so that it finds
 the device (merged over the scenario's own driver settings for that robot).
@@ -33,11 +40,13 @@ the device (merged over the scenario's own driver settings for that robot).
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Mapping
 
 
 SIM_OPEN_TIMEOUT_S = 10.0
@@ -60,20 +69,79 @@ class DeviceError(RuntimeError):
     """A device that cannot be hosted (bad settings, an endpoint that cannot be made)."""
 
 
+@dataclass(frozen=True)
+class DeviceConfig:
+    """What every simulated device's settings have (subclassed per device)."""
+
+    ideal: bool = True
+    """True: today's kind simulator (the other settings are not used); False: behave as the hardware does."""
+
+    def __post_init__(self):
+        if not isinstance(self.ideal, bool):
+            raise ValueError(f"ideal must be true or false, not {self.ideal!r}")
+
+    @classmethod
+    def from_settings(cls, settings: Mapping[str, Any] | None):
+        """The config from a scenario mapping; unknown keys and bad values raise a one-line ValueError."""
+        settings = dict(settings or {})
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(settings) - names)
+        if unknown:
+            raise ValueError(f"unknown setting(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})")
+        try:
+            return cls(**settings)
+        except TypeError as e:  # a wrongly typed value the checks below did not name
+            raise ValueError(str(e)) from None
+
+
+def check_number(name: str, value: Any, *, low: float | None = 0.0, high: float | None = None,
+                 low_open: bool = False) -> None:
+    """A finite real number within [low, high] (``low_open``: > low), else a one-line ValueError naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"{name} must be a finite number, not {value!r}")
+    if low is not None and (value <= low if low_open else value < low):
+        raise ValueError(f"{name} must be {'>' if low_open else '>='} {low:g}, not {value!r}")
+    if high is not None and value > high:
+        raise ValueError(f"{name} must be <= {high:g}, not {value!r}")
+
+
+def check_choice(name: str, value: Any, choices: tuple[str, ...]) -> None:
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {', '.join(choices)}, not {value!r}")
+
+
 class HostedDevice(ABC):
-    """One simulated device behind one robot's driver."""
+    """One simulated device behind one robot's driver.
+
+    ``device``: the device's settings (``config_class`` fields); default the robot's ``device``
+    mapping from the scenario, if it has one.
+    """
 
     kind = "base"
+    config_class: type[DeviceConfig] = DeviceConfig
 
-    def __init__(self, robot, *, run_dir: Path | None = None, session: Any = None, keys: Any = None, seed: int = 0):
+    def __init__(self, robot, *, run_dir: Path | None = None, session: Any = None, keys: Any = None, seed: int = 0,
+                 device: Mapping[str, Any] | DeviceConfig | None = None):
         self.robot = robot
         self.robot_id = robot.id
         self.run_dir = Path(run_dir) if run_dir is not None else None
         self.session = session
         self.keys = keys
         self.seed = seed
+        self.device_config = self._device_config(device if device is not None else getattr(robot, "device", None))
+        self.ray_caster: Callable[[float, float, float], Any] | None = None
+        """The world's lidar at an arbitrary pose of this robot, ``(x, y, yaw) -> ranges`` (its beam layout),
+        for a device that scans at its own times; None: the device reuses the world's newest scan."""
         self._wall0 = time.monotonic()
         self._offset: float | None = None  # device time = offset + sim time, once in lock-step
+
+    def _device_config(self, settings) -> DeviceConfig:
+        if isinstance(settings, self.config_class):
+            return settings
+        try:
+            return self.config_class.from_settings(settings)
+        except ValueError as e:
+            raise DeviceError(f"robot {self.robot_id}: {self.kind} device: {e}") from None
 
     def driver_config(self, cls, **over):
         """The robot's ``<driver>:`` settings as its driver reads them (``cls``: that driver's config
@@ -91,6 +159,12 @@ class HostedDevice(ABC):
     def device_time(self, t_sim: float) -> float:
         """Device time of a sim time (lock-step), or the wall time (real time)."""
         return self.wall_time() if self._offset is None else self._offset + t_sim
+
+    def host_clock(self, t_sim: float | None = None, offset_s: float = 0.0) -> float:
+        """The device host's clock (what it stamps with): the world's clock (sim time in lock-step, the
+        epoch in real time, as the world's own stamps) plus the host's ``offset_s`` (seconds ahead)."""
+        base = t_sim if (self.in_lockstep and t_sim is not None) else time.time()
+        return base + offset_s
 
     @property
     def in_lockstep(self) -> bool:
@@ -161,4 +235,5 @@ def make_device(driver: str, robot, **kw) -> HostedDevice:
     return device_class(driver)(robot, **kw)
 
 
-__all__ = ["Body", "DeviceError", "HostedDevice", "device_class", "hosted", "make_device"]
+__all__ = ["Body", "DeviceConfig", "DeviceError", "HostedDevice", "check_choice", "check_number",
+           "device_class", "hosted", "make_device"]

@@ -6,17 +6,50 @@ python-can's own ``slcan`` interface on its slave end, exactly as it would open 
 robot's wheel radius, track, gear and mounting (the same ``can:`` settings its driver has),
 are the body speeds the world moves the body with; their encoder estimates and heartbeats
 go out after the world has moved the body, so they describe it at the end of the step.
+
+Its settings (``OdriveDeviceConfig``, the robot's ``device:``): hardware-like (``ideal:
+false``) each axis's encoder reads its shaft angle at power-up (an absolute encoder: a
+fraction of a turn, seeded, or ``power_up_pos_rev``) and counts turns from there, and every
+encoder estimate of a step goes out at its own time (100 Hz, as on the bus), not only the
+newest. Ideal: positions from 0, the newest estimate per step.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
+import numpy as np
+
 from ..drivers.can import CanConfig
-from .devices import SIM_OPEN_TIMEOUT_S, Body, DeviceError, HostedDevice
+from .devices import SIM_OPEN_TIMEOUT_S, Body, DeviceConfig, DeviceError, HostedDevice, check_number
 from .odrive_sim import ODrivePair, SlcanPtyBus
+
+
+@dataclass(frozen=True)
+class OdriveDeviceConfig(DeviceConfig):
+    """How the simulated ODrive pair behaves (scenario: the robot's ``device:``); used only with ``ideal: false``."""
+
+    power_up_pos_rev: tuple[float, float] | None = None
+    """[rev] (left, right) encoder positions at power-up; None: each axis's shaft angle, a seeded fraction of a turn."""
+    all_encoder_samples: bool = True
+    """Every encoder estimate (each 10 ms) goes out at its own time; False: only the newest per world step."""
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.power_up_pos_rev is not None:
+            p = tuple(self.power_up_pos_rev) if isinstance(self.power_up_pos_rev, (list, tuple)) else ()
+            if len(p) != 2:
+                raise ValueError(f"power_up_pos_rev must be [left_rev, right_rev], not {self.power_up_pos_rev!r}")
+            for side, value in zip(("left", "right"), p):
+                check_number(f"power_up_pos_rev {side}", value, low=-1e6, high=1e6)
+            object.__setattr__(self, "power_up_pos_rev", tuple(float(v) for v in p))
+        if not isinstance(self.all_encoder_samples, bool):
+            raise ValueError(f"all_encoder_samples must be true or false, not {self.all_encoder_samples!r}")
 
 
 class OdriveDevice(HostedDevice):
     kind = "can"
+    config_class = OdriveDeviceConfig
 
     def __init__(self, robot, **kw):
         super().__init__(robot, **kw)
@@ -30,8 +63,14 @@ class OdriveDevice(HostedDevice):
             self.adapter = SlcanPtyBus()
         except OSError as e:
             raise DeviceError(f"robot {self.robot_id}: cannot make a pseudo-terminal for the slcan adapter: {e}") from None
-        cfg = self.config
-        self.pair = ODrivePair(self.adapter, (cfg.node_left, cfg.node_right), clock=self.wall_time).run_realtime()
+        cfg, dev = self.config, self.device_config
+        nodes = (cfg.node_left, cfg.node_right)
+        self.pair = ODrivePair(self.adapter, nodes, clock=self.wall_time, all_samples=not dev.ideal and dev.all_encoder_samples)
+        if not dev.ideal:  # the encoders power up where the shafts are
+            pos0 = dev.power_up_pos_rev or tuple(np.random.default_rng([self.seed, self.robot_id, 17]).random(2))
+            for node, p in zip(nodes, pos0):
+                self.pair.axes[node].pos = float(p)
+        self.pair.run_realtime()
 
     def driver_params(self) -> dict:
         # open_timeout: the whole fleet starts at once on this machine; a real ODrive answers in 100 ms
@@ -66,3 +105,6 @@ class OdriveDevice(HostedDevice):
         if self.adapter is not None:
             self.adapter.shutdown()
             self.adapter = None
+
+
+__all__ = ["OdriveDevice", "OdriveDeviceConfig"]

@@ -6,19 +6,52 @@ and turn-rate ramps, the 3 s target timeout, the FS_GCS hold) decide the body sp
 world moves the body and hands the pose back (``set_pose``), with the position noise of the
 vehicle's own estimate (the driver's ``position_std``), before the telemetry due goes out.
 The rover accelerates like the robot's simulated base (``base.wheel_accel`` x wheel radius).
+
+Its settings (``RoverDeviceConfig``, the robot's ``device:``): ``datum`` places the site on
+the globe for GLOBAL_POSITION_INT (both modes); hardware-like (``ideal: false``) the EKF
+origin is where the rover booted (``ekf_origin: boot``, as ArduPilot sets it at its first GPS
+fix), so LOCAL_POSITION_NED is relative to that, not to the site origin; ``SET_GPS_GLOBAL_ORIGIN``
+moves it in either mode.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ..drivers.mavlink import MavlinkConfig
-from .devices import SIM_OPEN_TIMEOUT_S, Body, DeviceError, HostedDevice
+from .devices import SIM_OPEN_TIMEOUT_S, Body, DeviceConfig, DeviceError, HostedDevice, check_choice, check_number
 from .rover_sim import SimRover
+
+
+@dataclass(frozen=True)
+class RoverDeviceConfig(DeviceConfig):
+    """How the simulated ArduPilot Rover behaves (scenario: the robot's ``device:``)."""
+
+    ekf_origin: str = "boot"
+    """``boot``: the EKF origin is where the rover booted (its start pose), LOCAL_POSITION_NED relative to it
+    (the hardware); ``site``: the site origin (the datum). Used only with ``ideal: false``; ideal is ``site``."""
+    datum: tuple[float, float, float] | None = None
+    """(lat [deg], lon [deg], alt [m]) of the site origin (the scenario's ``site.datum``), in both modes;
+    None: ArduPilot SITL's default location."""
+
+    def __post_init__(self):
+        super().__post_init__()
+        check_choice("ekf_origin", self.ekf_origin, ("boot", "site"))
+        if self.datum is not None:
+            d = tuple(self.datum) if isinstance(self.datum, (list, tuple)) else ()
+            if len(d) != 3:
+                raise ValueError(f"datum must be [lat_deg, lon_deg, alt_m], not {self.datum!r}")
+            check_number("datum latitude", d[0], low=-89.0, high=89.0)
+            check_number("datum longitude", d[1], low=-180.0, high=180.0)
+            check_number("datum altitude", d[2], low=-1000.0, high=10_000.0)
+            object.__setattr__(self, "datum", tuple(float(v) for v in d))
 
 
 class RoverDevice(HostedDevice):
     kind = "mavlink"
+    config_class = RoverDeviceConfig
 
     def __init__(self, robot, **kw):
         super().__init__(robot, **kw)
@@ -27,12 +60,13 @@ class RoverDevice(HostedDevice):
         self.rover: SimRover | None = None
 
     def start(self) -> None:
-        cfg, b = self.config, self.robot.base
+        cfg, b, dev = self.config, self.robot.base, self.device_config
         accel = b.wheel_accel * b.wheel_radius
         try:
             self.rover = SimRover(("127.0.0.1", 0), system=cfg.target_system, component=cfg.target_component,
                                   gcs_system=cfg.source_system, pose=self.robot.pose, integrate_pose=False,
-                                  accel_max=accel, yaw_accel_max=2.0 * accel / b.track, clock=self.wall_time)
+                                  accel_max=accel, yaw_accel_max=2.0 * accel / b.track, clock=self.wall_time,
+                                  datum=dev.datum, origin_at_boot=not dev.ideal and dev.ekf_origin == "boot")
         except OSError as e:
             raise DeviceError(f"robot {self.robot_id}: cannot bind the rover's UDP port on loopback: {e}") from None
         self.rover.run_realtime()
@@ -67,3 +101,6 @@ class RoverDevice(HostedDevice):
     def close(self) -> None:
         if self.rover is not None:
             self.rover.kill()
+
+
+__all__ = ["RoverDevice", "RoverDeviceConfig"]

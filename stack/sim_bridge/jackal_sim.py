@@ -18,7 +18,7 @@ step per 20 ms tick), and the J100's ``cmd_vel`` timeout of 0.5 s: a target olde
 (device time) becomes zero. Velocity limits act on the body speeds, as the controller's
 speed limiter does, so wheel separation and radius do not enter.
 
-Odometry: ``report`` publishes one message per world step at the end of the step (lock-step),
+Odometry, ideal (the default, ``device: {ideal: true}``): ``report`` publishes one message per world step at the end of the step (lock-step),
 stamped with the device time; before lock-step (and all along in real time) a thread
 publishes at 50 Hz from the newest body the world reported, stamped with the wall-clock
 device time, so a driver can open and see odometry. The pose is the body's pose in the
@@ -27,6 +27,17 @@ agent's estimator then starts at the right pose, as it does with the ``sim`` dri
 odometry. The twist is the body's (v, w) as the world moved it, with the robot's
 ``odom_noise`` (v_std, w_std) added on the step's report (seeded by the scenario's seed).
 Topic names come from the scenario's ``jackal`` driver settings, so driver and device agree.
+
+Hardware-like (``JackalDeviceConfig(ideal=False)``, the robot's ``device:`` settings): odometry
+at ``odom_rate_hz`` (50 Hz, robot_localization's rate) in the robot's odom frame, which is
+(0, 0, 0) where it booted (its start pose; ``odom_frame: site`` keeps the world frame), its
+pose dead-reckoned from the twist it reports (so it drifts with ``odom_noise``); the lidar at
+``lidar_rate_hz`` with its own beam layout, no return as +inf (REP 117); every sample at its
+own time (lock-step: the samples that fall in a world step go out when the step ends, the
+body where it was then, on the arc the world moved it), stamped by the robot's own clock
+(``clock_offset_s`` ahead of the world's), with ``jitter_s`` and ``drop_prob``. A scan taken
+inside a step is cast by ``ray_caster`` at the pose of its time when the world gives one,
+else it re-reads the world's newest scan (at the step's start).
 
 ``fail()`` (the world's ``--device-fault``) stops the odometry, as when the robot's EKF
 dies: the driver's odometry timeout then faults it and it sends zero.
@@ -41,7 +52,7 @@ import logging
 import math
 import threading
 from collections import deque
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -49,7 +60,8 @@ import zenoh
 
 from ..drivers.jackal import JackalConfig
 from ..drivers.ros2cdr import CdrError, decode_twist, encode_laserscan, encode_odometry
-from .devices import SIM_OPEN_TIMEOUT_S, Body, DeviceError, HostedDevice
+from .device_streams import Stream, arc, relative_pose
+from .devices import SIM_OPEN_TIMEOUT_S, Body, DeviceConfig, DeviceError, HostedDevice, check_choice, check_number
 
 log = logging.getLogger(__name__)
 
@@ -60,8 +72,165 @@ ALPHA_MAX = 25.0  # [rad/s^2] control.yaml angular.z.max_acceleration
 CMD_TIMEOUT = 0.5  # [s] the J100's cmd_vel timeout (the controller stops)
 
 
+@dataclass(frozen=True)
+class JackalDeviceConfig(DeviceConfig):
+    """How the simulated Jackal behaves (scenario: the robot's ``device:``); used only with ``ideal: false``."""
+
+    odom_rate_hz: float = ODOM_RATE
+    """[Hz] rate of ``platform/odom/filtered`` (robot_localization's EKF on a Jackal: 50 Hz)."""
+    odom_frame: str = "boot"
+    """``boot``: odometry in the robot's odom frame, (0, 0, 0) where it booted (the hardware);
+    ``site``: in the world (site) frame."""
+    lidar_rate_hz: float = 10.0
+    """[Hz] scan rate of the 2D lidar (SICK LMS111: 25/50, Hokuyo UST-10: 40, RPLidar A1: 5-15)."""
+    lidar_beams: int | None = None
+    """Beams per scan; None: the scenario's lidar."""
+    lidar_fov_deg: float | None = None
+    """[deg] field of view, centred ahead; None: the scenario's lidar."""
+    no_return: str = "inf"
+    """A beam without a return reads ``inf`` (REP 117) or ``range_max`` (older drivers)."""
+    clock_offset_s: float = 0.0
+    """[s] how far the robot's clock (its header stamps) is ahead of the world's (negative: behind)."""
+    jitter_s: float = 0.0
+    """[s] standard deviation of each sample's time about its nominal tick (clipped to 0.45 of a period)."""
+    drop_prob: float = 0.0
+    """Probability that a sample (odometry or scan) is lost on the way."""
+
+    def __post_init__(self):
+        super().__post_init__()
+        check_number("odom_rate_hz", self.odom_rate_hz, high=1000.0, low_open=True)
+        check_number("lidar_rate_hz", self.lidar_rate_hz, high=1000.0, low_open=True)
+        check_choice("odom_frame", self.odom_frame, ("boot", "site"))
+        check_choice("no_return", self.no_return, ("inf", "range_max"))
+        if self.lidar_beams is not None and (isinstance(self.lidar_beams, bool) or not isinstance(self.lidar_beams, int)
+                                             or not 1 <= self.lidar_beams <= 10_000):
+            raise ValueError(f"lidar_beams must be an integer 1..10000, not {self.lidar_beams!r}")
+        if self.lidar_fov_deg is not None:
+            check_number("lidar_fov_deg", self.lidar_fov_deg, high=360.0, low_open=True)
+        check_number("clock_offset_s", self.clock_offset_s, low=None)
+        check_number("jitter_s", self.jitter_s)
+        check_number("drop_prob", self.drop_prob, high=0.99)
+
+
 def _toward(value: float, target: float, step: float) -> float:
     return target if abs(target - value) <= step else value + math.copysign(step, target - value)
+
+
+class _HardwareTelemetry:
+    """The hardware-like Jackal's odometry and scans: own rates, odom frame, own clock, jitter, losses.
+
+    Lock-step: ``report`` sends the odometry samples of the step just ended and the scans taken in it
+    (before its end), ``world_scan`` those taken at the step's start. Real time: ``tick`` sends what is due
+    on the wall clock from the newest body and world scan. Guarded by ``lock`` (real time: two threads).
+    """
+
+    def __init__(self, dev: "JackalDevice", cfg: JackalDeviceConfig):
+        self.dev, self.cfg = dev, cfg
+        self.lock = threading.Lock()
+        self._rng = np.random.default_rng([dev.seed, dev.robot_id, 12])
+        self.odom, self.scan = self._streams()
+        robot = dev.robot
+        self.origin = tuple(robot.pose) if cfg.odom_frame == "boot" else (0.0, 0.0, 0.0)
+        lid = robot.lidar
+        beams = cfg.lidar_beams if cfg.lidar_beams is not None else lid.beams
+        fov = math.radians(cfg.lidar_fov_deg) if cfg.lidar_fov_deg is not None else lid.fov
+        self.angles = np.zeros(1) if beams == 1 else np.linspace(-fov / 2, fov / 2, beams)
+        self.increment = fov / (beams - 1) if beams > 1 else 0.0
+        self.range_max = float(lid.range)
+        self.pose: tuple[float, float, float] | None = None  # the odometry's own (dead-reckoned) pose
+        self.pose_t = 0.0  # sim time of that pose
+        self.twist: tuple[float, float] | None = None  # the newest (noisy) twist measured in this step
+        self.prev: tuple[Body, float] | None = None  # body and time of the previous report
+        self.world: tuple[float, float, np.ndarray] | None = None  # newest world scan: angle_min, increment, ranges
+        x, y, yaw = robot.pose
+        self.realtime_body = (Body(x, y, yaw, 0.0, 0.0), 0.0)  # newest body and the wall time it came
+
+    def _streams(self) -> tuple[Stream, Stream]:
+        c = self.cfg
+        return (Stream(c.odom_rate_hz, jitter_s=c.jitter_s, drop_prob=c.drop_prob, rng=self._rng),
+                Stream(c.lidar_rate_hz, jitter_s=c.jitter_s, drop_prob=c.drop_prob, rng=self._rng))
+
+    # --- lock-step ----------------------------------------------------------------------
+    def report(self, t: float, body: Body) -> None:
+        with self.lock:
+            if self.prev is None:  # the first lock-step report: the streams start here
+                self.odom.restart(t)
+                self.scan.restart(t)
+                self.pose, self.pose_t = relative_pose(self.origin, (body.x, body.y, body.yaw)), t
+                self.prev = (body, t)
+            prev, t0 = self.prev
+            for ts, kept in self.scan.due(t, inclusive=False):
+                self._send_scan(ts, kept, self._pose_between(prev, t0, body, ts))
+            self.twist = None
+            for ts, kept in self.odom.due(t):
+                self._send_odom(ts, kept, body)
+            v, w = self.twist or (body.v, body.w)  # the rest of the step at its speeds: the next one starts here
+            self.pose, self.pose_t = arc(self.pose, v, w, t - self.pose_t), t
+            self.prev = (body, t)
+
+    def world_scan(self, t: float, angle_min: float, increment: float, ranges) -> None:
+        with self.lock:
+            self.world = (angle_min, increment, np.asarray(ranges, float))
+            if self.prev is None or not self.dev.in_lockstep:
+                return
+            body = self.prev[0]
+            for ts, kept in self.scan.due(t):
+                self._send_scan(ts, kept, (body.x, body.y, body.yaw))
+
+    @staticmethod
+    def _pose_between(prev: Body, t0: float, body: Body, t: float) -> tuple[float, float, float]:
+        """Where the body was at ``t`` in (t0, t1]: on the arc the world moved it with (v, w) of the step."""
+        return arc((prev.x, prev.y, prev.yaw), body.v, body.w, t - t0)
+
+    def _send_odom(self, t: float, kept: bool, body: Body) -> None:
+        """Dead-reckon the odometry's pose to ``t`` with the (noisy) twist, then send it stamped on the robot's clock."""
+        v, w = self.twist = self.dev.noisy_twist(body.v, body.w)
+        self.pose = arc(self.pose, v, w, t - self.pose_t)
+        self.pose_t = t
+        if kept:
+            self.dev.publish_odom(self.dev.host_clock(t, self.cfg.clock_offset_s), *self.pose, v, w)
+
+    def _send_scan(self, t: float, kept: bool, pose: tuple[float, float, float], cast: bool = True) -> None:
+        """One scan at ``t`` from ``pose``: cast by the world there (``cast``, lock-step only: the world's
+        thread), else the world's newest scan."""
+        if not kept:
+            return
+        caster = self.dev.ray_caster if cast else None
+        if caster is not None:
+            ranges = np.asarray(caster(*pose, self.angles), float)
+        elif self.world is not None:
+            ranges = self._resample(*self.world)
+        else:
+            return
+        if self.cfg.no_return == "inf":
+            ranges = np.where(ranges >= self.range_max - 1e-6, np.inf, ranges)
+        self.dev.publish_laserscan(self.dev.host_clock(t, self.cfg.clock_offset_s), float(self.angles[0]),
+                                   self.increment, self.range_max, ranges, 1.0 / self.cfg.lidar_rate_hz)
+
+    def _resample(self, angle_min: float, increment: float, ranges: np.ndarray) -> np.ndarray:
+        """The world's scan read at our beam angles (nearest beam); outside its field of view: no return."""
+        if ranges.size == self.angles.size and abs(angle_min - self.angles[0]) < 1e-9:
+            return ranges
+        if ranges.size == 1 or increment == 0:
+            return np.full(self.angles.size, float(ranges[0]))
+        idx = np.rint((self.angles - angle_min) / increment).astype(int)
+        inside = (idx >= 0) & (idx < ranges.size)
+        return np.where(inside, ranges[np.clip(idx, 0, ranges.size - 1)], self.range_max)
+
+    # --- real time ----------------------------------------------------------------------
+    def tick(self, now: float) -> float:
+        """Send what is due by wall time ``now`` (device time); returns the time of the next sample."""
+        with self.lock:
+            body, at = self.realtime_body
+            pose = arc((body.x, body.y, body.yaw), body.v, body.w, max(0.0, now - at))
+            for _, kept in self.odom.due(now):
+                v, w = self.dev.noisy_twist(body.v, body.w)
+                if kept:
+                    self.dev.publish_odom(self.dev.host_clock(None, self.cfg.clock_offset_s),
+                                          *relative_pose(self.origin, pose), v, w)
+            for ts, kept in self.scan.due(now):
+                self._send_scan(ts, kept, pose, cast=False)
+            return min(self.odom.next_time, self.scan.next_time)
 
 
 class JackalDevice(HostedDevice):
@@ -74,6 +243,7 @@ class JackalDevice(HostedDevice):
     """
 
     kind = "jackal"
+    config_class = JackalDeviceConfig
 
     def __init__(self, robot, *, namespace: str | None = None, on_malformed: Callable[[str], None] | None = None,
                  **kw):
@@ -106,6 +276,8 @@ class JackalDevice(HostedDevice):
         self._pubs: dict[str, Any] = {}
         self._halt = threading.Event()
         self._thread: threading.Thread | None = None
+        cfg = self.device_config
+        self.hardware = None if cfg.ideal else _HardwareTelemetry(self, cfg)
 
     # --- lifecycle ----------------------------------------------------------------------
     def start(self) -> None:
@@ -135,9 +307,13 @@ class JackalDevice(HostedDevice):
         self._pubs = {}
 
     def _run_realtime(self) -> None:
-        while not self._halt.wait(1.0 / ODOM_RATE):
+        wait = 1.0 / ODOM_RATE
+        while not self._halt.wait(wait):
             try:
-                self._publish_odom(self.wall_time(), self.body)
+                if self.hardware is None:
+                    self._publish_odom(self.wall_time(), self.body)
+                else:
+                    wait = max(0.0, self.hardware.tick(self.wall_time()) - self.wall_time())
             except zenoh.ZError as e:  # the world's session is gone: so is the robot
                 log.warning("jackal device %s: odometry on %s stopped: %s", self.robot_id, self.odom_key, e)
                 return
@@ -190,20 +366,42 @@ class JackalDevice(HostedDevice):
 
     # --- telemetry out ------------------------------------------------------------------
     def report(self, t_sim_next: float, body: Body) -> None:
-        v_std, w_std = self._odom_noise
-        if v_std or w_std:
-            nv, nw = self._rng.normal(0.0, 1.0, 2) * (v_std, w_std)
-            body = replace(body, v=body.v + float(nv), w=body.w + float(nw))
+        if self.hardware is not None:
+            if self.in_lockstep:
+                self.hardware.report(t_sim_next, body)
+            else:
+                with self.hardware.lock:
+                    self.hardware.realtime_body = (body, self.wall_time())
+            self.body = body
+            return
+        v, w = self.noisy_twist(body.v, body.w)
+        body = replace(body, v=v, w=w)
         self.body = body
         if self.in_lockstep:  # one odometry per step; on the wall clock the thread sends them at 50 Hz
             self._publish_odom(self.device_time(t_sim_next), body)
 
+    def noisy_twist(self, v: float, w: float) -> tuple[float, float]:
+        """The body's (v, w) with the robot's ``odom_noise`` (seeded)."""
+        v_std, w_std = self._odom_noise
+        if v_std or w_std:
+            nv, nw = self._rng.normal(0.0, 1.0, 2) * (v_std, w_std)
+            return v + float(nv), w + float(nw)
+        return v, w
+
     def publish_scan(self, t_sim: float, angle_min: float, angle_increment: float, range_max: float,
                      ranges: Sequence[float]) -> None:
-        """The world's lidar scan at ``t_sim`` as the Jackal's ``sensor_msgs/LaserScan``."""
+        """The world's lidar scan at ``t_sim`` as the Jackal's ``sensor_msgs/LaserScan`` (hardware-like: the
+        newest world scan, for the scans the lidar takes at its own rate)."""
+        if self.hardware is not None:
+            self.hardware.world_scan(t_sim, angle_min, angle_increment, ranges)
+            return
+        self.publish_laserscan(self.device_time(t_sim), angle_min, angle_increment, range_max, ranges)
+
+    def publish_laserscan(self, stamp: float, angle_min: float, angle_increment: float, range_max: float,
+                          ranges: Sequence[float], scan_time: float = 0.0) -> None:
         pub = self._pubs.get(self.scan_key)
         if pub is not None:
-            pub.put(encode_laserscan(self.device_time(t_sim), angle_min, angle_increment, range_max, ranges))
+            pub.put(encode_laserscan(stamp, angle_min, angle_increment, range_max, ranges, scan_time=scan_time))
             self._count("scan")
 
     def fail(self) -> str:
@@ -211,9 +409,12 @@ class JackalDevice(HostedDevice):
         return "the Jackal's filtered odometry stopped (its EKF died); cmd_vel still reaches the controller"
 
     def _publish_odom(self, stamp: float, body: Body) -> None:
+        self.publish_odom(stamp, body.x, body.y, body.yaw, body.v, body.w)
+
+    def publish_odom(self, stamp: float, x: float, y: float, yaw: float, v: float, w: float) -> None:
         pub = self._pubs.get(self.odom_key)
         if pub is not None and not self.odom_stopped:
-            pub.put(encode_odometry(stamp, body.x, body.y, body.yaw, body.v, body.w))
+            pub.put(encode_odometry(stamp, x, y, yaw, v, w))
             self._count("odom")
 
     # --- helpers ------------------------------------------------------------------------
@@ -225,4 +426,4 @@ class JackalDevice(HostedDevice):
         self._on_malformed(f"jackal/{kind}")
 
 
-__all__ = ["JackalDevice"]
+__all__ = ["JackalDevice", "JackalDeviceConfig"]

@@ -2,7 +2,18 @@
 
 ``SimAxis`` is one axis's state machine, without I/O: IDLE (1) -> CLOSED_LOOP_CONTROL (8) on
 Set_Axis_State, a velocity ramp, heartbeats every 100 ms, encoder estimates every 10 ms and
-on RTR, Estop, Clear_Errors, Get_Error, the axis watchdog.
+on RTR, Estop, Clear_Errors, Set_Absolute_Position, the axis watchdog, and answers to every
+"Get" request of the DBC (Get_Error, Get_Encoder_Estimates, Get_Bus_Voltage_Current, Get_Iq,
+Get_Temperature, Get_Torques, Get_Powers, Get_Version). Its motor drives a load: torque =
+inertia x angular acceleration + viscous friction x speed (the robot's mass at the wheel),
+Iq = torque / torque constant, electrical power = mechanical + copper losses, the bus
+current from that, temperatures ambient + losses x thermal resistance (steady state).
+
+Encoders count from power-up: ``pos`` is the motor's turns since the axis powered up, from
+``pos0`` (0 for an incremental encoder, the shaft angle for an absolute one), never the
+robot's place in the world; Set_Absolute_Position sets it. ``all_samples``: every encoder
+estimate due in a caller's step goes out, each at its own time (a real bus carries one
+every 10 ms), instead of only the newest.
 
 ``ODrivePair`` puts two axes (any node ids) on any ``can.BusABC`` and is driven by its
 caller's time: ``step(t_now)`` handles the frames that came in, advances the axes to
@@ -37,6 +48,7 @@ import threading
 import time
 import tty
 from collections import deque
+from dataclasses import dataclass
 from typing import Callable
 
 import can
@@ -46,6 +58,37 @@ from ..drivers.odrive import AxisState, ControlMode, InputMode, ProcedureResult
 
 INPUT_REJECTED_ERROR = "MISSING_INPUT"
 """Axis error (a DBC Axis_Error name) set by a Set_Input_Vel outside CLOSED_LOOP_CONTROL."""
+
+FIRMWARE_VERSION = {"Protocol_Version": 2, "Hw_Version_Major": 4, "Hw_Version_Minor": 4, "Hw_Version_Variant": 58,
+                    "Fw_Version_Major": 0, "Fw_Version_Minor": 6, "Fw_Version_Revision": 10, "Fw_Version_Unreleased": 0}
+"""Get_Version of the simulated axis: an ODrive Pro (hw 4.4-58V) on firmware 0.6.10, the DBC's."""
+
+
+@dataclass(frozen=True)
+class MotorModel:
+    """The motor and what it drives, for the torque, current, power and temperature replies."""
+
+    torque_constant: float = 8.27 / 150.0
+    """[Nm/A] 8.27 / KV (a 150 KV motor, the class of ODrive's D6374)."""
+    inertia: float = 0.08
+    """[kg m^2] at the motor: half a 17 kg robot at a 0.098 m wheel."""
+    viscous: float = 0.02
+    """[Nm per rev/s] rolling resistance and friction, proportional to speed."""
+    phase_resistance: float = 0.04
+    """[ohm] per phase (D6374: 0.039): copper losses 1.5 R Iq^2."""
+    ambient: float = 25.0
+    """[deg C] around the board."""
+    fet_k_per_w: float = 0.1
+    """[K/W] FET temperature rise per watt of losses (steady state)."""
+    motor_k_per_w: float = 0.3
+    """[K/W] motor temperature rise per watt of losses (steady state)."""
+
+    def torque(self, vel: float, accel: float) -> float:
+        """[Nm] to turn at ``vel`` [rev/s] while accelerating at ``accel`` [rev/s^2]."""
+        return self.inertia * 2.0 * math.pi * accel + self.viscous * vel
+
+    def copper_loss(self, iq: float) -> float:
+        return 1.5 * self.phase_resistance * iq * iq
 
 
 def _count(counters: dict[str, int], key: str) -> None:
@@ -61,7 +104,8 @@ class SimAxis:
     """
 
     def __init__(self, node_id: int, *, vel_ramp_rate: float = 10.0, watchdog_timeout: float = 0.5,
-                 heartbeat_period: float = 0.1, encoder_period: float = 0.01, bus_voltage: float = 24.0):
+                 heartbeat_period: float = 0.1, encoder_period: float = 0.01, bus_voltage: float = 24.0,
+                 pos0: float = 0.0, all_samples: bool = False, motor: "MotorModel | None" = None):
         self.node_id = node_id
         self.vel_ramp_rate = vel_ramp_rate  # [rev/s^2] the VEL_RAMP slope
         self.watchdog_timeout = watchdog_timeout  # [s] 0 disables the watchdog
@@ -77,7 +121,10 @@ class SimAxis:
         self.input_mode = InputMode.PASSTHROUGH
         self.input_vel = 0.0  # [rev/s]
         self.vel = 0.0  # [rev/s]
-        self.pos = 0.0  # [rev]
+        self.pos = float(pos0)  # [rev] since power-up (from the encoder's reading then)
+        self.accel = 0.0  # [rev/s^2] over the newest integration step
+        self.all_samples = all_samples
+        self.motor = motor if motor is not None else MotorModel()
         self.heartbeats_muted = False
         self.counters: dict[str, int] = {}
         self._t: float | None = None
@@ -109,6 +156,11 @@ class SimAxis:
                 self.input_vel = float(s["Input_Vel"])
         elif f.name == "Estop":
             self.disarm(odrive.error_bit("ESTOP_REQUESTED"))
+        elif f.name == "Set_Absolute_Position":
+            if math.isfinite(s["Position"]):
+                self.pos = float(s["Position"])
+            else:
+                _count(self.counters, "bad_value")
         elif f.name == "Clear_Errors":  # a condition still present (persistent error) stays
             self.errors = self.disarm_reason = self.conditions
             self.procedure_result = ProcedureResult.SUCCESS
@@ -134,12 +186,35 @@ class SimAxis:
     def _reply(self, name: str) -> list[can.Message]:
         if name == "Get_Encoder_Estimates":
             return [self.encoder_frame()]
+        signals = self._get_signals(name)
+        if signals is None:
+            _count(self.counters, "unsupported")
+            return []
+        return [odrive.encode(name, self.node_id, **signals)]
+
+    def _get_signals(self, name: str) -> dict | None:
+        """The signals of a "Get" reply (DBC names), from the motor model; None: not a message we answer."""
+        m = self.motor
+        torque = m.torque(self.vel, self.accel) if self.state == AxisState.CLOSED_LOOP_CONTROL else 0.0
+        iq = torque / m.torque_constant
+        mech = torque * 2.0 * math.pi * self.vel
+        elec = mech + m.copper_loss(iq)
         if name == "Get_Error":
-            return [odrive.encode("Get_Error", self.node_id, Active_Errors=self.errors, Disarm_Reason=self.disarm_reason)]
+            return {"Active_Errors": self.errors, "Disarm_Reason": self.disarm_reason}
         if name == "Get_Bus_Voltage_Current":
-            return [odrive.encode("Get_Bus_Voltage_Current", self.node_id, Bus_Voltage=self.bus_voltage, Bus_Current=0.0)]
-        _count(self.counters, "unsupported")
-        return []
+            return {"Bus_Voltage": self.bus_voltage, "Bus_Current": elec / self.bus_voltage}
+        if name == "Get_Iq":
+            return {"Iq_Setpoint": iq, "Iq_Measured": iq}
+        if name == "Get_Torques":
+            return {"Torque_Target": torque, "Torque_Estimate": torque}
+        if name == "Get_Powers":
+            return {"Electrical_Power": elec, "Mechanical_Power": mech}
+        if name == "Get_Temperature":
+            loss = m.copper_loss(iq)
+            return {"FET_Temperature": m.ambient + m.fet_k_per_w * loss, "Motor_Temperature": m.ambient + m.motor_k_per_w * loss}
+        if name == "Get_Version":
+            return dict(FIRMWARE_VERSION)
+        return None
 
     # --- faults -----------------------------------------------------------------------
     def disarm(self, error_bits: int) -> None:
@@ -169,14 +244,14 @@ class SimAxis:
         (at most one of each kind: a caller stepping coarsely gets the newest, not a burst)."""
         if self._t is None:
             self._t = self._next_hb = self._next_enc = self._fed = t
-        if t > self._t:
-            expiry = self._fed + self.watchdog_timeout
-            if self.watchdog_timeout > 0 and self.state == AxisState.CLOSED_LOOP_CONTROL and expiry < t:
-                self._integrate(max(expiry, self._t))
-                self.disarm(odrive.error_bit("WATCHDOG_TIMER_EXPIRED"))
-            self._integrate(t)
         out = []
-        if t >= self._next_enc:
+        while self.all_samples and self._next_enc <= t + 1e-9:  # each estimate at its own time
+            self._advance_to(self._next_enc)
+            out.append(self.encoder_frame())
+            out[-1].timestamp = self._next_enc  # when it was taken: a pair sends its axes' frames in time order
+            self._next_enc += self.encoder_period
+        self._advance_to(t)
+        if not self.all_samples and t >= self._next_enc:
             out.append(self.encoder_frame())
             self._next_enc = _next_due(self._next_enc, self.encoder_period, t)
         if t >= self._next_hb:
@@ -185,11 +260,26 @@ class SimAxis:
             self._next_hb = _next_due(self._next_hb, self.heartbeat_period, t)
         return out
 
+    def _advance_to(self, t: float) -> None:
+        """Integrate to ``t``, the watchdog expiring on the way."""
+        if t <= self._t:
+            return
+        expiry = self._fed + self.watchdog_timeout
+        if self.watchdog_timeout > 0 and self.state == AxisState.CLOSED_LOOP_CONTROL and expiry < t:
+            self._integrate(max(expiry, self._t))
+            self.disarm(odrive.error_bit("WATCHDOG_TIMER_EXPIRED"))
+        self._integrate(t)
+
     def _integrate(self, t: float) -> None:
         dt = t - self._t
         self._t = t
         if dt <= 0:
             return
+        v_before = self.vel
+        self._ramp(dt)
+        self.accel = (self.vel - v_before) / dt
+
+    def _ramp(self, dt: float) -> None:
         target = self.input_vel if (self.state == AxisState.CLOSED_LOOP_CONTROL
                                     and self.control_mode == ControlMode.VELOCITY_CONTROL) else 0.0
         v0 = self.vel
@@ -257,7 +347,10 @@ class ODrivePair:
         """Advance the axes to ``t_now``; the periodic frames due by then, for ``send`` (a world sends
         them once it has moved the body, so they describe the body at ``t_now``)."""
         with self._lock:
-            return [m for axis in self.axes.values() for m in axis.advance(t_now)]
+            frames = [m for axis in self.axes.values() for m in axis.advance(t_now)]
+            if any(axis.all_samples for axis in self.axes.values()):  # as on a bus: in the order they were taken
+                frames.sort(key=lambda m: m.timestamp if m.timestamp else t_now)
+            return frames
 
     def send(self, msgs: list[can.Message]) -> None:
         with self._lock:
@@ -495,4 +588,4 @@ def _is_hex(s: str) -> bool:
     return all(c in "0123456789abcdefABCDEF" for c in s)
 
 
-__all__ = ["INPUT_REJECTED_ERROR", "ODrivePair", "SimAxis", "SlcanPtyBus"]
+__all__ = ["FIRMWARE_VERSION", "INPUT_REJECTED_ERROR", "MotorModel", "ODrivePair", "SimAxis", "SlcanPtyBus"]

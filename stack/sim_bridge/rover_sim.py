@@ -13,6 +13,31 @@ commands it lacks); GUIDED body-frame velocity + yaw-rate targets
 ``GLOBAL_POSITION_INT`` at the rates asked for by ``MAV_CMD_SET_MESSAGE_INTERVAL`` (off
 until asked, as ``default_rates`` says).
 
+Ground-station traffic, as ArduPilot answers it (``GCS_MAVLINK`` / ``Rover/GCS_MAVLink_Rover.cpp``):
+telemetry only when asked, by ``REQUEST_DATA_STREAM`` (the stream groups POSITION,
+EXTRA1, EXTENDED_STATUS and ALL; no ACK, as it is a message), ``MAV_CMD_SET_MESSAGE_INTERVAL``,
+``MAV_CMD_GET_MESSAGE_INTERVAL`` and ``MAV_CMD_REQUEST_MESSAGE`` (each ACKed; FAILED for a
+message it does not have); HEARTBEAT base_mode with ``GUIDED_ENABLED`` in the autopilot
+modes (GUIDED, AUTO, RTL, SMART_RTL, LOITER), ``MANUAL_INPUT_ENABLED`` in MANUAL, ACRO and
+STEERING, ``SAFETY_ARMED`` when armed; system status CRITICAL in a failsafe, STANDBY in
+HOLD, ACTIVE otherwise (``vehicle_system_status``). ``SET_POSITION_TARGET_LOCAL_NED`` is read
+as ``handle_set_position_target_local_ned`` does, with Rover's ``defines.h`` masks (any bit of
+a group set ignores the group: position x|y, velocity vx|vy, acceleration ax|ay, yaw, yaw
+rate): frames LOCAL_NED (from the EKF origin), LOCAL_OFFSET_NED, BODY_NED, BODY_OFFSET_NED;
+acceleration not ignored -> rejected with a STATUSTEXT; a position -> drive there (stop
+within ``wp_radius``); velocity (+ turn rate, or + heading, or alone: heading from its
+direction) -> speed |(vx, vy)|, backwards when vx < 0 and a yaw or yaw rate is given; a
+turn rate or a heading alone -> turn on the spot. Velocity and heading targets time out after
+3 s; a position target does not.
+
+Frames and the globe: the world's (site) frame has its origin at ``datum`` (lat, lon, alt)
+and maps to the globe through a local tangent plane (north = y, east = x; equirectangular,
+WGS-84 radius: cm-exact over a site). ``LOCAL_POSITION_NED`` is relative to the EKF
+origin: the datum by default, where the rover booted with ``origin_at_boot`` (ArduPilot
+sets it at its first fix), or what ``SET_GPS_GLOBAL_ORIGIN`` says (answered with
+``GPS_GLOBAL_ORIGIN``). ``GLOBAL_POSITION_INT``: lat/lon degE7 and alt mm from the datum,
+relative_alt 0 (flat ground, home at boot), vx/vy/vz cm/s NED, hdg cdeg.
+
 It is driven by its caller's time, like ``odrive_sim.ODrivePair``: ``step(t_now)`` handles
 the datagrams that came in, advances a unicycle body (speed and turn rate ramp to the
 target under acceleration limits) to ``t_now`` and sends the messages due by then, so the
@@ -28,7 +53,8 @@ with ``udpin:``), else to every address that has sent to it (the driver connects
 
 Not vendor behaviour: arming in any mode and without checks but ``arming_check_failed``;
 ``MAV_RESULT_DENIED`` for a failed arming check (ArduPilot says FAILED and a STATUSTEXT);
-velocity targets only in body frames (8, 9), other target kinds are ignored and counted.
+heading and position targets are steered by a proportional heading controller (``HEADING_P``)
+at up to ``speed_max``, not by Rover's navigation controllers (L1 / S-curves, WP_SPEED).
 """
 
 from __future__ import annotations
@@ -43,14 +69,66 @@ from typing import Any, Callable
 
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from ..drivers.mavlink import (MODE_GUIDED, MODE_HOLD, POSITION_IGNORE, ROVER_MODES, VX_IGNORE, YAW_RATE_IGNORE,
-                               mode_name, mode_number, ned_velocity, world_to_ned, wrap_angle, yaw_rate_ned)
+from ..drivers.mavlink import (MODE_GUIDED, MODE_HOLD, ROVER_MODES, mode_name, mode_number, ned_velocity,
+                               ned_to_world, world_to_ned, wrap_angle, yaw_rate_ned)
 
 STREAMS = {mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: "LOCAL_POSITION_NED", mav.MAVLINK_MSG_ID_ATTITUDE: "ATTITUDE",
-           mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: "GLOBAL_POSITION_INT"}
-"""Message ids the rover streams when asked (MAV_CMD_SET_MESSAGE_INTERVAL)."""
+           mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: "GLOBAL_POSITION_INT", mav.MAVLINK_MSG_ID_SYS_STATUS: "SYS_STATUS"}
+"""Message ids the rover streams when asked (MAV_CMD_SET_MESSAGE_INTERVAL, REQUEST_DATA_STREAM)."""
+ONCE = {**STREAMS, mav.MAVLINK_MSG_ID_HEARTBEAT: "HEARTBEAT", mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN: "GPS_GLOBAL_ORIGIN"}
+"""Message ids it sends once on MAV_CMD_REQUEST_MESSAGE."""
+DATA_STREAMS = {mav.MAV_DATA_STREAM_EXTENDED_STATUS: (mav.MAVLINK_MSG_ID_SYS_STATUS,),
+                mav.MAV_DATA_STREAM_POSITION: (mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+                                               mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED),
+                mav.MAV_DATA_STREAM_EXTRA1: (mav.MAVLINK_MSG_ID_ATTITUDE,)}
+"""REQUEST_DATA_STREAM groups (ArduPilot's stream contents, restricted to the messages it has)."""
+MAX_STREAM_HZ = 50.0  # ArduPilot caps a stream at its main loop rate; Rover runs at 50 Hz
 
-_EARTH_RADIUS = 6_378_137.0  # [m] WGS-84, for the flat-earth GLOBAL_POSITION_INT
+AUTOPILOT_MODES = {ROVER_MODES[m] for m in ("GUIDED", "AUTO", "RTL", "SMART_RTL", "LOITER", "FOLLOW", "DOCK")
+                   if m in ROVER_MODES}
+"""Modes whose ``is_autopilot_mode()`` is true: HEARTBEAT base_mode has MAV_MODE_FLAG_GUIDED_ENABLED."""
+MANUAL_MODES = {ROVER_MODES[m] for m in ("MANUAL", "ACRO", "STEERING")}
+"""Modes whose ``has_manual_input()`` is true: MAV_MODE_FLAG_MANUAL_INPUT_ENABLED."""
+
+# Rover/defines.h: SET_POSITION_TARGET type_mask groups (any bit set ignores the group)
+MASK_POS_IGNORE = (1 << 0) | (1 << 1)
+MASK_VEL_IGNORE = (1 << 3) | (1 << 4)
+MASK_ACC_IGNORE = (1 << 6) | (1 << 7)
+MASK_YAW_IGNORE = 1 << 10
+MASK_YAW_RATE_IGNORE = 1 << 11
+TARGET_FRAMES = (mav.MAV_FRAME_LOCAL_NED, mav.MAV_FRAME_LOCAL_OFFSET_NED, mav.MAV_FRAME_BODY_NED,
+                 mav.MAV_FRAME_BODY_OFFSET_NED)
+BODY_FRAMES = (mav.MAV_FRAME_BODY_NED, mav.MAV_FRAME_BODY_OFFSET_NED)
+HEADING_P = 2.0  # [1/s] turn rate per rad of heading error (ArduPilot's ATC_STR_ANG_P default)
+
+DEFAULT_DATUM = (-35.363261, 149.165230, 584.0)
+"""(lat, lon, alt) of a site without a datum: ArduPilot SITL's default location (CMAC)."""
+_EARTH_RADIUS = 6_378_137.0  # [m] WGS-84 equatorial radius, for the local tangent plane
+
+
+# --- the globe: a local tangent plane around a datum (x east, y north) ----------------------
+def ne_to_geodetic(origin: tuple[float, float, float], north: float, east: float) -> tuple[float, float, float]:
+    """(lat, lon, alt) at (north, east) [m] from ``origin`` (lat, lon, alt) on its tangent plane."""
+    lat0, lon0, alt0 = origin
+    return (lat0 + math.degrees(north / _EARTH_RADIUS),
+            lon0 + math.degrees(east / (_EARTH_RADIUS * math.cos(math.radians(lat0)))), alt0)
+
+
+def geodetic_to_ne(origin: tuple[float, float, float], lat: float, lon: float) -> tuple[float, float]:
+    """(north, east) [m] of (lat, lon) from ``origin`` on its tangent plane (inverse of ne_to_geodetic)."""
+    lat0, lon0, _ = origin
+    return (math.radians(lat - lat0) * _EARTH_RADIUS,
+            math.radians(lon - lon0) * _EARTH_RADIUS * math.cos(math.radians(lat0)))
+
+
+def site_to_geodetic(datum: tuple[float, float, float], x: float, y: float) -> tuple[float, float, float]:
+    """A site-frame position (x east, y north) on the globe, through the datum's tangent plane."""
+    return ne_to_geodetic(datum, y, x)
+
+
+def geodetic_to_site(datum: tuple[float, float, float], lat: float, lon: float) -> tuple[float, float]:
+    north, east = geodetic_to_ne(datum, lat, lon)
+    return east, north
 
 
 def _count(counters: dict[str, int], key: str) -> None:
@@ -80,7 +158,9 @@ class SimRover:
     [m/s] and ``turn_rate_max`` [rad/s] clamp the target. ``gcs_system``: the system id whose
     heartbeats feed the FS_GCS failsafe (ArduPilot's SYSID_MYGCS); the failsafe starts after
     the first one, as ArduPilot's does. ``pose``: the start pose in our world frame.
-    ``home``: (lat, lon) [deg] of the local origin, for GLOBAL_POSITION_INT.
+    ``datum``: (lat, lon[, alt]) [deg, m] of the site origin, for GLOBAL_POSITION_INT (``home`` is
+its old name: (lat, lon)). ``origin_at_boot``: the EKF origin is where the rover starts
+(``pose``), not the datum. ``wp_radius`` [m]: a position target is reached within it.
     ``integrate_pose``: the rover moves its own pose with its body velocity (standalone, tests);
     False when the world owns the pose and calls ``set_pose`` every step.
     """
@@ -90,7 +170,8 @@ class SimRover:
                  heartbeat_period: float = 1.0, target_timeout: float = 3.0, fs_gcs_timeout: float = 5.0,
                  accel_max: float = 1.0, yaw_accel_max: float = 3.0, speed_max: float = 2.0, turn_rate_max: float = 4.0,
                  default_rates: dict[int, float] | None = None, pose: tuple[float, float, float] = (0.0, 0.0, 0.0),
-                 home: tuple[float, float] = (-35.363261, 149.165230), integrate_pose: bool = True,
+                 home: tuple[float, float] | None = None, datum: tuple[float, ...] | None = None,
+                 origin_at_boot: bool = False, wp_radius: float = 2.0, integrate_pose: bool = True,
                  clock: Callable[[], float] = time.monotonic, log_size: int = 10_000):
         self.system, self.component, self.gcs_system = system, component, gcs_system
         self.heartbeat_period = heartbeat_period
@@ -98,7 +179,13 @@ class SimRover:
         self.fs_gcs_timeout = fs_gcs_timeout
         self.accel_max, self.yaw_accel_max = accel_max, yaw_accel_max
         self.speed_max, self.turn_rate_max = speed_max, turn_rate_max
-        self.home = home
+        lat0, lon0, *alt = datum if datum is not None else (home if home is not None else DEFAULT_DATUM)
+        self.datum = (float(lat0), float(lon0), float(alt[0]) if alt else DEFAULT_DATUM[2])
+        self.home = self.datum[:2]
+        self.origin = site_to_geodetic(self.datum, pose[0], pose[1]) if origin_at_boot else self.datum
+        """The EKF origin (lat, lon, alt): LOCAL_POSITION_NED is relative to it."""
+        self.wp_radius = wp_radius
+        self.guided: tuple[str, float, float] | None = None  # ("heading", v, yaw) or ("position", x, y): else rate
         self.integrate_pose = integrate_pose
         self.peer = peer
         self.mode = mode_number(mode)
@@ -206,6 +293,8 @@ class SimRover:
                 return _count(self.counters, "not_for_us")
             result = self._command(m, t)
             self._enc.send(self._enc.command_ack_encode(m.command, result, 0, 0, m.get_srcSystem(), m.get_srcComponent()))
+            if m.command == mav.MAV_CMD_REQUEST_MESSAGE and result == mav.MAV_RESULT_ACCEPTED:
+                self._send_once(int(m.param1), t)  # after its ACK, as ArduPilot's deferred send
             return
         if kind == "SET_MODE":
             if m.target_system != self.system:
@@ -215,11 +304,37 @@ class SimRover:
             self._enc.send(self._enc.command_ack_encode(mav.MAVLINK_MSG_ID_SET_MODE, result, 0, 0, m.get_srcSystem(),
                                                         m.get_srcComponent()))
             return
-        if kind == "SET_POSITION_TARGET_LOCAL_NED":
+        if kind in ("SET_POSITION_TARGET_LOCAL_NED", "REQUEST_DATA_STREAM", "SET_GPS_GLOBAL_ORIGIN"):
             if m.target_system != self.system:
                 return _count(self.counters, "not_for_us")
-            return self._on_target(m, t)
+            handler = {"SET_POSITION_TARGET_LOCAL_NED": self._on_target, "REQUEST_DATA_STREAM": self._on_data_stream,
+                       "SET_GPS_GLOBAL_ORIGIN": self._on_origin}[kind]
+            return handler(m, t)
         _count(self.counters, "ignored")
+
+    def _on_data_stream(self, m: Any, t: float) -> None:
+        """REQUEST_DATA_STREAM (no ACK: a message): start/stop a stream group at a rate [Hz]."""
+        if m.start_stop == 0:
+            rate = 0.0
+        elif m.req_message_rate != 0:
+            rate = min(float(m.req_message_rate), MAX_STREAM_HZ)
+        else:
+            return _count(self.counters, "ignored")
+        groups = DATA_STREAMS.values() if m.req_stream_id == mav.MAV_DATA_STREAM_ALL else \
+            [DATA_STREAMS.get(m.req_stream_id, ())]
+        for msg_id in (i for group in groups for i in group):
+            self.intervals[msg_id] = 1.0 / rate if rate > 0 else 0.0
+            self._next_stream[msg_id] = t
+        _count(self.counters, "data_stream")
+
+    def _on_origin(self, m: Any, t: float) -> None:
+        """SET_GPS_GLOBAL_ORIGIN: the EKF origin moves there (LOCAL_POSITION_NED follows); says GPS_GLOBAL_ORIGIN."""
+        lat, lon = m.latitude * 1e-7, m.longitude * 1e-7
+        if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
+            return _count(self.counters, "bad_value")
+        self.origin = (lat, lon, m.altitude * 1e-3)
+        _count(self.counters, "origin_set")
+        self._send_once(mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, t)
 
     def _command(self, m: Any, t: float) -> int:
         c = m.command
@@ -238,6 +353,15 @@ class SimRover:
                 self.disarm()
                 return mav.MAV_RESULT_ACCEPTED
             return mav.MAV_RESULT_DENIED
+        if c == mav.MAV_CMD_REQUEST_MESSAGE:
+            return mav.MAV_RESULT_ACCEPTED if int(m.param1) in ONCE else mav.MAV_RESULT_FAILED
+        if c == mav.MAV_CMD_GET_MESSAGE_INTERVAL:
+            msg_id = int(m.param1)
+            if msg_id not in STREAMS:
+                return mav.MAV_RESULT_FAILED
+            period = self.intervals.get(msg_id, 0.0)
+            self._enc.send(self._enc.message_interval_encode(msg_id, round(period * 1e6) if period > 0 else -1))
+            return mav.MAV_RESULT_ACCEPTED
         if c == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
             msg_id, interval = int(m.param1), m.param2
             if msg_id not in STREAMS or not math.isfinite(interval):
@@ -258,22 +382,73 @@ class SimRover:
             return False
         if mode != self.mode:
             self.mode = mode
-            self.target, self.target_time = (0.0, 0.0), None  # a new mode starts without a GUIDED target
+            self.target, self.target_time, self.guided = (0.0, 0.0), None, None  # a new mode: no GUIDED target
         return True
 
     def _on_target(self, m: Any, t: float) -> None:
-        if not (self.armed and self.mode == MODE_GUIDED):
+        """SET_POSITION_TARGET_LOCAL_NED as ``handle_set_position_target_local_ned`` reads it (Rover's masks)."""
+        if self.mode != MODE_GUIDED:
             return _count(self.counters, "target_refused")
-        if m.coordinate_frame not in (mav.MAV_FRAME_BODY_NED, mav.MAV_FRAME_BODY_OFFSET_NED) \
-                or m.type_mask & POSITION_IGNORE != POSITION_IGNORE or m.type_mask & VX_IGNORE:
+        if m.coordinate_frame not in TARGET_FRAMES:
             return _count(self.counters, "target_unsupported")
-        yaw_rate = 0.0 if m.type_mask & YAW_RATE_IGNORE else m.yaw_rate
-        if not (math.isfinite(m.vx) and math.isfinite(yaw_rate)):
+        mask = m.type_mask
+        pos, vel = not mask & MASK_POS_IGNORE, not mask & MASK_VEL_IGNORE
+        yaw, rate = not mask & MASK_YAW_IGNORE, not mask & MASK_YAW_RATE_IGNORE
+        used = (m.x, m.y) * pos + (m.vx, m.vy) * vel + (m.yaw,) * yaw + (m.yaw_rate,) * rate
+        if not all(math.isfinite(f) for f in used):
             return _count(self.counters, "bad_value")
-        v = max(-self.speed_max, min(self.speed_max, m.vx))
-        w = max(-self.turn_rate_max, min(self.turn_rate_max, yaw_rate_ned(yaw_rate)))
-        self.target, self.target_time = (v, w), t
+        if mask & MASK_ACC_IGNORE == 0:  # Rover ignores any target whose accelerations are not masked out
+            self._statustext(mav.MAV_SEVERITY_INFO, "Ignoring SET_POSITION_TARGET_LOCAL_NED; set ACC_IGNORE in mask")
+            return _count(self.counters, "target_accel_rejected")
+        if pos:
+            self.guided, self.target, self.target_time = ("position", *self._target_position(m)), (0.0, 0.0), None
+            return _count(self.counters, "target")
+        _, _, yaw_ned = world_to_ned(self._x, self._y, self._yaw)
+        body = m.coordinate_frame in BODY_FRAMES
+        speed = min(math.hypot(m.vx, m.vy), self.speed_max) if vel else 0.0
+        heading = math.atan2(m.vy, m.vx) + (yaw_ned if body else 0.0) if vel else 0.0
+        if yaw:
+            heading = m.yaw + (yaw_ned if body else 0.0)
+        if vel and (yaw or rate) and m.vx < 0:
+            speed = -speed  # "by default the rover drives forward": vx < 0 reverses
+        if vel and not rate or yaw and not vel and not rate:  # heading (and speed)
+            self.guided = ("heading", speed, ned_to_world(0.0, 0.0, heading)[2])
+            self.target = (speed, 0.0)
+        elif rate and not yaw:  # turn rate (and speed)
+            self.guided = None
+            self.target = (speed, max(-self.turn_rate_max, min(self.turn_rate_max, yaw_rate_ned(m.yaw_rate))))
+        else:  # yaw and yaw rate both, or nothing: Rover acts on neither
+            return _count(self.counters, "target_unsupported")
+        self.target_time = t
         _count(self.counters, "target")
+
+    def _target_position(self, m: Any) -> tuple[float, float]:
+        """The target's site position (x, y): LOCAL_NED from the EKF origin, the OFFSET/BODY frames from here."""
+        if m.coordinate_frame == mav.MAV_FRAME_LOCAL_NED:
+            lat, lon, _ = ne_to_geodetic(self.origin, m.x, m.y)
+            return geodetic_to_site(self.datum, lat, lon)
+        north, east = m.x, m.y
+        if m.coordinate_frame in BODY_FRAMES:
+            _, _, yaw_ned = world_to_ned(self._x, self._y, self._yaw)
+            c, s = math.cos(yaw_ned), math.sin(yaw_ned)
+            north, east = m.x * c - m.y * s, m.x * s + m.y * c
+        return self._x + east, self._y + north
+
+    def _goal_speeds(self) -> tuple[float, float]:
+        """(v, w) the GUIDED controllers ask for now: the target's, or steering to a heading or a position."""
+        if self.guided is None:
+            return self.target
+        kind, a, b = self.guided
+        if kind == "heading":
+            err = wrap_angle(b - self._yaw)
+            return a, max(-self.turn_rate_max, min(self.turn_rate_max, HEADING_P * err))
+        dx, dy = a - self._x, b - self._y
+        dist = math.hypot(dx, dy)
+        if dist <= self.wp_radius:
+            return 0.0, 0.0
+        err = wrap_angle(math.atan2(dy, dx) - self._yaw)
+        v = min(self.speed_max, dist) * max(0.0, math.cos(err))
+        return v, max(-self.turn_rate_max, min(self.turn_rate_max, HEADING_P * err))
 
     def _advance(self, t: float) -> None:
         if self._t is None:
@@ -281,7 +456,7 @@ class SimRover:
             for msg_id in self.intervals:
                 self._next_stream[msg_id] = t
         if self.target_time is not None and t - self.target_time > self.target_timeout:
-            self.target, self.target_time = (0.0, 0.0), None
+            self.target, self.target_time, self.guided = (0.0, 0.0), None, None
             _count(self.counters, "target_timeout")
         if (self.armed and self.failsafe is None and self.gcs_time is not None
                 and t - self.gcs_time > self.fs_gcs_timeout):
@@ -292,7 +467,7 @@ class SimRover:
         if dt <= 0:
             return
         self._t = t
-        v_goal, w_goal = self.target if (self.armed and self.mode == MODE_GUIDED) else (0.0, 0.0)
+        v_goal, w_goal = self._goal_speeds() if (self.armed and self.mode == MODE_GUIDED) else (0.0, 0.0)
         v0, w0 = self._v, self._w
         self._v = _ramp(v0, v_goal, self.accel_max, dt)
         self._w = _ramp(w0, w_goal, self.yaw_accel_max, dt)
@@ -317,26 +492,56 @@ class SimRover:
 
     # --- messages out -------------------------------------------------------------------
     def _send_heartbeat(self) -> None:
-        base = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mav.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
-        status = mav.MAV_STATE_ACTIVE if self.armed else mav.MAV_STATE_STANDBY
+        base = (mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mav.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
+                | (mav.MAV_MODE_FLAG_GUIDED_ENABLED if self.mode in AUTOPILOT_MODES else 0)
+                | (mav.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED if self.mode in MANUAL_MODES else 0))
         self._enc.send(self._enc.heartbeat_encode(mav.MAV_TYPE_GROUND_ROVER, mav.MAV_AUTOPILOT_ARDUPILOTMEGA, base,
-                                                  self.mode, status))
+                                                  self.mode, self.system_status))
         _count(self.counters, "heartbeat")
 
+    @property
+    def system_status(self) -> int:
+        """HEARTBEAT system_status as Rover's ``vehicle_system_status``."""
+        if self.failsafe is not None:
+            return mav.MAV_STATE_CRITICAL
+        if self.mode == ROVER_MODES["INITIALIZING"]:
+            return mav.MAV_STATE_CALIBRATING
+        return mav.MAV_STATE_STANDBY if self.mode == MODE_HOLD else mav.MAV_STATE_ACTIVE
+
+    def _statustext(self, severity: int, text: str) -> None:
+        self._enc.send(self._enc.statustext_encode(severity, text.encode()[:50]))
+        _count(self.counters, "statustext")
+
+    def _send_once(self, msg_id: int, t: float) -> None:
+        """One message on request (MAV_CMD_REQUEST_MESSAGE, a new origin)."""
+        if msg_id == mav.MAVLINK_MSG_ID_HEARTBEAT:
+            return self._send_heartbeat()
+        if msg_id == mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
+            lat, lon, alt = self.origin
+            self._enc.send(self._enc.gps_global_origin_encode(round(lat * 1e7), round(lon * 1e7), round(alt * 1e3),
+                                                              int(max(0.0, t - (self._t0 or 0.0)) * 1e6)))
+            return _count(self.counters, "gps_global_origin")
+        self._send_stream(msg_id, t)
+
     def _send_stream(self, msg_id: int, t: float) -> None:
-        north, east, yaw_ned = world_to_ned(self._x, self._y, self._yaw)
+        _, _, yaw_ned = world_to_ned(self._x, self._y, self._yaw)
         v, w = self._measured or (self._v, self._w)
         vn, ve = ned_velocity(v, yaw_ned)
-        ms = int((t - self._t0) * 1000) & 0xFFFFFFFF
+        ms = int((t - (self._t0 if self._t0 is not None else t)) * 1000) & 0xFFFFFFFF
+        lat, lon, alt = site_to_geodetic(self.datum, self._x, self._y)
         if msg_id == mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
+            north, east = geodetic_to_ne(self.origin, lat, lon)  # from the EKF origin
             msg = self._enc.local_position_ned_encode(ms, north, east, 0.0, vn, ve, 0.0)
         elif msg_id == mav.MAVLINK_MSG_ID_ATTITUDE:
             msg = self._enc.attitude_encode(ms, 0.0, 0.0, yaw_ned, 0.0, 0.0, yaw_rate_ned(w))
+        elif msg_id == mav.MAVLINK_MSG_ID_SYS_STATUS:
+            sensors = (mav.MAV_SYS_STATUS_SENSOR_3D_GYRO | mav.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+                       | mav.MAV_SYS_STATUS_SENSOR_3D_MAG | mav.MAV_SYS_STATUS_SENSOR_GPS)
+            msg = self._enc.sys_status_encode(sensors, sensors, sensors, 100, 12_600, -1, -1, 0, 0, 0, 0, 0, 0)
         else:
-            lat = self.home[0] + math.degrees(north / _EARTH_RADIUS)
-            lon = self.home[1] + math.degrees(east / (_EARTH_RADIUS * math.cos(math.radians(self.home[0]))))
-            msg = self._enc.global_position_int_encode(ms, int(lat * 1e7), int(lon * 1e7), 0, 0, int(vn * 100),
-                                                       int(ve * 100), 0, int(math.degrees(yaw_ned) % 360 * 100))
+            msg = self._enc.global_position_int_encode(ms, round(lat * 1e7), round(lon * 1e7), round(alt * 1e3), 0,
+                                                       round(vn * 100), round(ve * 100), 0,
+                                                       round(math.degrees(yaw_ned) % 360 * 100) % 36000)
         self._enc.send(msg)
         _count(self.counters, STREAMS[msg_id].lower())
 
@@ -427,7 +632,7 @@ class SimRover:
         """Disarmed (a pilot's switch, the safety button): the motors stop driving."""
         with self._lock:
             self.armed = False
-            self.target, self.target_time = (0.0, 0.0), None
+            self.target, self.target_time, self.guided = (0.0, 0.0), None, None
 
 
 def _next_due(due: float, period: float, t: float) -> float:
@@ -435,4 +640,5 @@ def _next_due(due: float, period: float, t: float) -> float:
     return due if due > t else t + period
 
 
-__all__ = ["STREAMS", "SimRover"]
+__all__ = ["DATA_STREAMS", "DEFAULT_DATUM", "ONCE", "STREAMS", "SimRover", "geodetic_to_ne", "geodetic_to_site",
+           "ne_to_geodetic", "site_to_geodetic"]
