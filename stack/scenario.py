@@ -119,6 +119,10 @@ class RobotConfig:
     base: BaseConfig = field(default_factory=BaseConfig)
     goal: tuple[float, float] | None = None
     driver_params: dict[str, dict[str, Any]] = field(default_factory=dict)  # driver name -> its settings
+    device: dict[str, Any] = field(default_factory=dict)
+    """Simulation only: the settings of the simulated device behind this robot's driver (``robot.device``:
+    ``ideal`` for every device, then ``<driver>: {...}`` for the device behind that driver), resolved for
+    its own driver; checked against that device's config (``stack/sim_bridge``'s ``DeviceConfig``s)."""
     settings: Mapping[str, Any] = field(default_factory=dict)
     """Policy settings key (``robot.<key>``) -> its resolved config dataclass: every block the scenario
     gives, and this robot's policy and ``pid`` (situation 1) with their defaults where it gives none."""
@@ -247,6 +251,15 @@ class BenchConfig:
 
 
 @dataclass(frozen=True)
+class SiteConfig:
+    """``site:`` (optional, top level): where the site frame is on the globe."""
+
+    datum: tuple[float, float, float] | None = None
+    """(lat [deg], lon [deg], alt [m]) of the site frame's origin on WGS84 (x east, y north); GNSS-based
+    drivers (MAVLink) place the robot relative to it. None: the site is not tied to the globe."""
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str
     seed: int
@@ -259,6 +272,7 @@ class Scenario:
     coordination: str | None
     success: SuccessConfig
     bench: BenchConfig = field(default_factory=BenchConfig)
+    site: "SiteConfig" = field(default_factory=lambda: SiteConfig())
     source: str = "<scenario>"
     raw: dict = field(default_factory=dict, compare=False, repr=False)
 
@@ -340,7 +354,7 @@ def _max(rd: "_Reader", v: int, hi: int, path: str) -> int:
 
 
 _CORE_KEYS = {"radius", "v_max", "w_max", "lidar", "odom_noise", "imu_noise", "fix", "comm_range", "cmd_timeout", "base",
-              "policy", "driver"}
+              "policy", "driver", "device"}
 
 
 def _robot_keys() -> set[str]:
@@ -366,7 +380,53 @@ def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict
         out["driver"] = rd.choice(d["driver"], f"{path}.driver", driver_names())
     out["settings"] = _policy_blocks(rd, d, path, out.get("settings", {}))
     out["driver_params"] = _driver_blocks(rd, d, path, out.get("driver_params", {}))
+    if "device" in d:
+        out["device_blocks"] = _device_blocks(rd, d["device"], f"{path}.device", out.get("device_blocks", {}))
     return out
+
+
+def _device_blocks(rd: _Reader, value: Any, path: str, base: Mapping[str, Any]) -> dict[str, Any]:
+    """``device: {ideal: bool, <driver>: {...}}`` over the defaults' (``base``); each driver's block is
+    checked when a robot with that driver resolves it (``_resolve_device``)."""
+    from .drivers import DRIVERS
+
+    m = rd.mapping(value or {}, path, {"ideal"} | {n for n, rec in DRIVERS.items() if rec.device})
+    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in base.items()}
+    for key, v in m.items():
+        if key == "ideal":
+            out["ideal"] = rd.boolean(v, f"{path}.ideal")
+        else:
+            out[key] = dict(out.get(key, {})) | dict(rd.mapping(v or {}, f"{path}.{key}", _device_keys(key)))
+    return out
+
+
+def _device_keys(driver: str) -> set[str]:
+    """The settings of the simulated device behind ``driver`` (simulation only: imported when a block names it)."""
+    import dataclasses
+
+    from .sim_bridge.devices import device_class
+
+    return {f.name for f in dataclasses.fields(device_class(driver).config_class)}
+
+
+def _resolve_device(rd: _Reader, blocks: Mapping[str, Any], driver: str, path: str) -> dict[str, Any]:
+    """The robot's own device settings: ``ideal`` then its driver's block, checked by the device's config."""
+    out = {"ideal": blocks["ideal"]} if "ideal" in blocks else {}
+    out |= dict(blocks.get(driver, {}))
+    if out and driver in _hosted():
+        from .sim_bridge.devices import device_class
+
+        try:
+            device_class(driver).config_class.from_settings(out)
+        except ValueError as e:
+            raise rd.fail(f"{path}.device.{driver}" if driver in blocks else f"{path}.device", str(e)) from None
+    return out if driver in _hosted() else {}
+
+
+def _hosted() -> set[str]:
+    from .drivers import DRIVERS
+
+    return {n for n, rec in DRIVERS.items() if rec.device}
 
 
 def _limits(rd: _Reader, d: dict, path: str, out: dict[str, Any]) -> None:
@@ -509,7 +569,8 @@ def _obstacle(rd: _Reader, d: Any, path: str) -> Obstacle:
     return Obstacle("wall", start=a, end=b, thickness=rd.number(d.get("thickness", 0.2), f"{path}.thickness", 0.0, lo_open=True))
 
 
-_TOP_KEYS = {"name", "seed", "dt", "duration", "world", "robot", "comm", "formation", "robots", "success", "coordination", "bench"}
+_TOP_KEYS = {"name", "seed", "dt", "duration", "world", "robot", "comm", "formation", "robots", "success", "coordination",
+             "bench", "site"}
 
 
 def parse_scenario(data: Any, source: str = "<scenario>") -> Scenario:
@@ -540,7 +601,20 @@ def parse_scenario(data: Any, source: str = "<scenario>") -> Scenario:
     return Scenario(name=str(d.get("name", Path(source).stem)), seed=seed, dt=dt, duration=duration, obstacles=obstacles,
                     robots=tuple(robots), comm=comm, formation=formation, coordination=coordination,
                     success=_success(rd, d.get("success", {}) or {}), bench=_bench(rd, d.get("bench")),
-                    source=source, raw=data)
+                    site=_site(rd, d.get("site")), source=source, raw=data)
+
+
+def _site(rd: _Reader, value: Any) -> SiteConfig:
+    if value is None:
+        return SiteConfig()
+    m = rd.mapping(value, "site", {"datum"})
+    if m.get("datum") is None:
+        return SiteConfig()
+    lat, lon, alt = rd.vector(m["datum"], "site.datum", 3)
+    rd.number(lat, "site.datum[0]", -89.0, 89.0)  # the tangent plane is no use at the poles
+    rd.number(lon, "site.datum[1]", -180.0, 180.0)
+    rd.number(alt, "site.datum[2]", -1000.0, 10_000.0)
+    return SiteConfig(datum=(lat, lon, alt))
 
 
 def _world(rd: _Reader, value: Any) -> tuple[Obstacle, ...]:
@@ -595,6 +669,7 @@ def _robot(rd: _Reader, r: Any, p: str, defaults: dict[str, Any]) -> RobotConfig
     role = rd.choice(r["role"], f"{p}.role", ROLES) if "role" in r else None
     goal = rd.vector(r["goal"], f"{p}.goal", 2) if "goal" in r else None
     fields_ = _robot_fields(rd, r, p, defaults)
+    fields_["device"] = _resolve_device(rd, fields_.pop("device_blocks", {}), fields_.get("driver", "sim"), p)
     robot = RobotConfig(id=rid, role=role, pose=(x, y, math.radians(yaw_deg)), goal=goal, **fields_)
     return robot.with_defaults("pid", robot.policy_key)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import re
 
 import pytest
 
@@ -191,3 +192,34 @@ def test_plugin_blocks_merge_per_robot_over_the_defaults():
     assert sc.robot(1).driver_params["can"] == {"channel": "vcan0", "node_left": 2}
     with pytest.raises(KeyError, match="no policy takes robot.lidar settings"):
         sc.robot(0).config_for("lidar")
+
+
+def test_device_settings_resolve_per_driver_and_bad_ones_are_one_line():
+    """``robot.device``: ``ideal`` for every simulated device, then a block per driver, checked by that device's config."""
+    import yaml
+
+    d = yaml.safe_load((SCENARIOS / "mixed-drivers.yaml").read_text())
+    d["robot"]["device"] = {"ideal": False, "jackal": {"lidar_rate_hz": 15}}
+    d["robots"][1]["device"] = {"can": {"power_up_pos_rev": [0.25, 0.5]}}
+    sc = parse_scenario(d, "m.yaml")
+    by_driver = {r.driver: r.device for r in sc.robots}
+    assert by_driver["jackal"] == {"ideal": False, "lidar_rate_hz": 15}
+    assert by_driver["can"] == {"ideal": False, "power_up_pos_rev": [0.25, 0.5]}
+    assert by_driver["mavlink"] == {"ideal": False} and by_driver["sim"] == {}
+    for bad, words in (({"jackal": {"lidar_rate": 15}}, "robot.device.jackal.lidar_rate: unknown field"),
+                       ({"ideal": 3}, "robot.device.ideal: expected true or false"),
+                       ({"jackal": {"lidar_rate_hz": -1}}, "device.jackal: lidar_rate_hz must be > 0"),
+                       ({"bogus": {}}, "robot.device.bogus: unknown field")):
+        d["robot"]["device"] = bad
+        with pytest.raises(ScenarioError, match=re.escape(words)):
+            parse_scenario(d, "m.yaml")
+
+
+def test_site_datum():
+    d = scenario_dict(site={"datum": [47.3977, 8.5456, 488.0]})
+    assert parse_scenario(d, "s.yaml").site.datum == (47.3977, 8.5456, 488.0)
+    assert parse_scenario(scenario_dict(), "s.yaml").site.datum is None
+    for bad, words in (([47.0, 8.0], "site.datum: expected 3 numbers, got 2"), ([95.0, 0.0, 0.0], "site.datum[0]: must be <= 89"),
+                       ([0.0, 200.0, 0.0], "site.datum[1]: must be <= 180")):
+        with pytest.raises(ScenarioError, match=re.escape(words)):
+            parse_scenario(scenario_dict(site={"datum": bad}), "s.yaml")
