@@ -8,11 +8,16 @@ With both clocks fake the driver's own supervise thread only ever sees times the
 so whatever it does the test's ``supervise_once`` would have done at the same time: the
 outcome does not depend on which thread got there first. Pick periods and steps exact in
 binary (0.125, 1/64) where a test counts keep-alives, so sums of steps land on them.
+
+``settle`` waits for a device that was just silenced: until what is already on the way has
+arrived (a counter stops changing), so a stale-device test can then age the silence by hand.
 """
 
 from __future__ import annotations
 
 import threading
+import time
+from typing import Callable
 
 
 class FakeClock:
@@ -39,4 +44,18 @@ class FakeClock:
             driver.supervise_once()
 
 
-__all__ = ["FakeClock"]
+def settle(value: Callable[[], object], quiet: float = 0.1, timeout: float = 3.0) -> bool:
+    """Until ``value()`` (a message counter) has not changed for ``quiet`` s of wall time; False after ``timeout``."""
+    end = time.monotonic() + timeout
+    last, since = value(), time.monotonic()
+    while time.monotonic() < end:
+        time.sleep(quiet / 10)
+        now = value()
+        if now != last:
+            last, since = now, time.monotonic()
+        elif time.monotonic() - since >= quiet:
+            return True
+    return False
+
+
+__all__ = ["FakeClock", "settle"]
