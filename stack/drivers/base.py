@@ -113,6 +113,7 @@ class Driver(ABC):
     provides_scan = False  # True: ``read_scan()`` gives the robot's own lidar (a bridged ROS 2 robot)
     config_class: type | None = None  # the dataclass of its settings (the scenario's ``<driver>:`` block)
     fault_action = "zero velocity sent"  # what a fault put on the wire, for the log
+    supervise_period = 0.05  # [s] the longest wait between supervision rounds (a device to watch: shorter)
 
     def __init__(self, robot_id: int, limits: DriverLimits, clock: Callable[[], float] = time.monotonic,
                  wall: Callable[[], float] = time.monotonic, on_malformed: Callable[[str], None] | None = None):
@@ -351,7 +352,7 @@ class Driver(ABC):
                 self._trip(reason)
 
     def _supervise(self) -> None:
-        period = min([0.02, self.limits.cmd_timeout / 4] + [k.period / 2 for k, _ in self._feeds])
+        period = min([self.supervise_period, self.limits.cmd_timeout / 4] + [k.period / 2 for k, _ in self._feeds])
         while not self._halt.is_set():
             try:
                 self.supervise_once()

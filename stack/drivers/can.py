@@ -336,6 +336,11 @@ class CanDriver(Driver):
             return self._latest
 
     # --- supervision hooks (the base's supervisor calls them) --------------------------
+    @property
+    def supervise_period(self) -> float:
+        """A fifth of the heartbeat_timeout (and 20 ms at most) between supervision rounds."""
+        return min(0.02, self.config.heartbeat_timeout / 5)
+
     def _keepalives(self) -> list[Keepalive]:
         """The last command, feeding the axes' watchdogs; none once faulted (the axes are in Estop)."""
         return [Keepalive("command", self.config.keepalive_period)]

@@ -219,6 +219,11 @@ class JackalDriver(Driver):
             return self._scan
 
     # --- supervision hooks (the base's supervisor calls them) --------------------------
+    @property
+    def supervise_period(self) -> float:
+        """A fifth of the odom_timeout (and 20 ms at most) between supervision rounds."""
+        return min(0.02, self.config.odom_timeout / 5)
+
     def _keepalives(self) -> list[Keepalive]:
         """The last Twist, faulted or not: after a fault the controller keeps hearing zero."""
         return [Keepalive("command", self.config.keepalive_period, faulted=True)]

@@ -548,6 +548,11 @@ class MavlinkDriver(Driver):
             return self._is_armed()
 
     # --- supervision hooks (the base's supervisor calls them) --------------------------
+    @property
+    def supervise_period(self) -> float:
+        """A fifth of the heartbeat_timeout (and 20 ms at most) between supervision rounds."""
+        return min(0.02, self.config.heartbeat_timeout / 5)
+
     def _keepalives(self) -> list[Keepalive]:
         """Our GCS heartbeat (always: the FS_GCS failsafe listens for it through the handshake) and the
         last target (while armed and not faulted)."""
