@@ -292,9 +292,12 @@ def test_driver_frames_decode_to_the_intended_signals():
         ("Axis1_Set_Controller_Mode", {"Control_Mode": "VELOCITY_CONTROL", "Input_Mode": "VEL_RAMP"}),
         ("Axis1_Set_Axis_State", {"Axis_Requested_State": "CLOSED_LOOP_CONTROL"}),
     ]
-    name, s = sent[6]
+    zero = {"Input_Vel": 0.0, "Input_Torque_FF": 0.0}
+    assert sent[6:8] == [("Axis0_Set_Input_Vel", zero), ("Axis1_Set_Input_Vel", zero)]  # in closed loop: fed at once
+    moving = [(n, s) for n, s in sent[8:] if s != zero]
+    name, s = moving[0]
     assert name == "Axis0_Set_Input_Vel" and s["Input_Vel"] == pytest.approx(k, rel=1e-6) and s["Input_Torque_FF"] == 0
-    name, s = sent[7]
+    name, s = moving[1]
     assert name == "Axis1_Set_Input_Vel" and s["Input_Vel"] == pytest.approx(-k, rel=1e-6)  # mirrored right motor
     assert sent[-4:] == [("Axis0_Set_Input_Vel", {"Input_Vel": 0.0, "Input_Torque_FF": 0.0}),
                          ("Axis1_Set_Input_Vel", {"Input_Vel": 0.0, "Input_Torque_FF": 0.0}),
@@ -466,7 +469,7 @@ def test_can_log_writes_an_asc_file_with_both_directions(tmp_path):
     rx = {m.arbitration_id for m in logged if m.is_rx}
     assert {0x018, 0x00B, 0x007, 0x00D, 0x02D, 0x027} <= tx  # Clear_Errors, mode, state, Set_Input_Vel
     assert {0x001, 0x009, 0x021, 0x029} <= rx  # heartbeats and encoder estimates of both axes
-    vel = [m for m in logged if m.arbitration_id == 0x02D and any(m.data)]
+    vel = [m for m in logged if m.arbitration_id == 0x02D and dbc_decode(m)[1]["Input_Vel"] != 0.0]
     assert dbc_decode(vel[0])[1]["Input_Vel"] == pytest.approx(-0.1 / (2 * math.pi * 0.1) * 2.0, rel=1e-6)
 
 

@@ -148,19 +148,20 @@ def test_the_supervise_thread_runs_the_watchdog_on_real_clocks():
 def test_keepalive_resends_the_last_command_at_its_period():
     d, clock, wall = fake(keepalive=0.25)
     with d:
-        clock.run(d, 0.25, 0.125, wall)  # a period after opening: the last command (zero) again
-        assert d.wire == [(0.0, 0.0)]
+        assert d.wire == [(0.0, 0.0)]  # the first one at once, when armed
+        clock.run(d, 0.25, 0.125, wall)  # a period later: the last command (zero) again
+        assert d.wire == [(0.0, 0.0)] * 2
         d.command(0.5, 0.25)
         clock.run(d, 0.125, 0.125, wall)
         d.command(0.5, 0.25)  # every command restarts the period
         clock.run(d, 0.125, 0.125, wall)
-        assert d.wire == [(0.0, 0.0), (0.5, 0.25), (0.5, 0.25)]
+        assert d.wire[2:] == [(0.5, 0.25), (0.5, 0.25)]
         clock.run(d, 0.25, 0.125, wall)
-        assert d.wire[-1] == (0.5, 0.25) and len(d.wire) == 4
+        assert d.wire[2:] == [(0.5, 0.25)] * 3
         clock.run(d, 0.25, 0.125, wall)  # once more; then the watchdog (0.5 s after the command) zeroes
-        assert d.wire[4:] == [(0.5, 0.25), (0.0, 0.0)] and d.watchdog_trips == 1
+        assert d.wire[5:] == [(0.5, 0.25), (0.0, 0.0)] and d.watchdog_trips == 1
         clock.run(d, 0.25, 0.125, wall)  # and the keepalive resends the zero
-        assert d.wire[4:] == [(0.5, 0.25), (0.0, 0.0), (0.0, 0.0)]
+        assert d.wire[5:] == [(0.5, 0.25), (0.0, 0.0), (0.0, 0.0)]
 
 
 @pytest.mark.parametrize("moving", ["driver clock", "wall clock"])
@@ -174,7 +175,7 @@ def test_keepalive_is_due_by_either_clock(moving):
         for _ in range(8):  # 1 s on one clock, none on the other
             ticking.advance(0.125)
             d.supervise_once()
-        assert d.wire == [(0.3, 0.0)] * 5
+        assert d.wire == [(0.0, 0.0)] + [(0.3, 0.0)] * 5
 
 
 def test_periodic_by_hand():
@@ -225,7 +226,7 @@ def test_no_supervision_before_open_or_after_close():
     with d:
         d.command(0.2, 0.0)
     clock.run(d, 1.0, 0.125, wall)
-    assert d.wire == [(0.2, 0.0), (0.0, 0.0)] and d.fault is None
+    assert d.wire == [(0.0, 0.0), (0.2, 0.0), (0.0, 0.0)] and d.fault is None
 
 
 def test_a_failing_keepalive_is_counted_and_logged():

@@ -259,7 +259,7 @@ def test_keepalive_feeds_the_target():
     rig = Rig(clock=clock, wall=wall).start()
     try:
         rig.driver.command(0.2, 0.0)
-        assert wait_for(lambda: rig.sim.counters.get("target"), 0.5)
+        assert wait_for(lambda: rig.sim.target == pytest.approx((0.2, 0.0)), 0.5)  # the command itself is there
         n0, hb0 = rig.sim.counters["target"], rig.sim.counters["gcs_heartbeat"]
         clock.run(rig.driver, 1.0, 0.125, wall)  # no new command: resent every 0.25 s; our heartbeat at 1 Hz
         assert wait_for(lambda: rig.sim.counters["target"] - n0 == 4, 1.0), rig.sim.counters["target"] - n0

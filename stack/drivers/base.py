@@ -167,8 +167,19 @@ class Driver(ABC):
             with self._lock:
                 self._is_open = self._supervising = True
                 self._last_cmd_time = None
-                self._commanded(self._clock(), self._wall())
+                self._last_sent = (0.0, 0.0)
+                self._first_keepalive()
         return self
+
+    def _first_keepalive(self) -> None:
+        """Armed: a driver that keeps its command alive sends zero at once, not a period later (a device
+        watchdog that started with closed loop or arming is fed now, however busy this process is)."""
+        if not any(k.send is None for k, _ in self._feeds):
+            return
+        try:
+            self._put(0.0, 0.0)
+        except Exception as e:  # the keep-alive retries it, and a backend may trip on that
+            log.warning("%s driver %s: zero command on opening failed: %s", self.name, self.robot_id, e)
 
     def close(self) -> None:
         """Zero velocity first, then release the device. Safe to call twice."""
