@@ -419,6 +419,21 @@ def test_open_fails_naming_the_axis_and_reason():
         bus.shutdown()
 
 
+def test_an_adapter_that_cannot_send_is_a_one_line_open_error():
+    bus = can.Bus(interface="virtual", channel=f"odrive-test-{next(_channels)}-{os.getpid()}")
+
+    def refuse(msg, timeout=None):
+        raise can.CanOperationError("Could not write to serial device")
+
+    bus.send = refuse
+    try:
+        with pytest.raises(DriverError, match=r"^can driver 1: cannot start the axes on .*: Could not write to serial "
+                                              r"device$"):
+            CanDriver(1, LIMITS, CFG, bus=bus).open()
+    finally:
+        bus.shutdown()
+
+
 def test_malformed_traffic_is_counted_and_ignored(rig):
     rig.driver.command(0.2, 0.0)
     assert wait_for(lambda: rig.driver.read() is not None and rig.driver.read().v == pytest.approx(0.2, abs=1e-3), 1.0)

@@ -198,6 +198,10 @@ class CanDriver(Driver):
                     raise DriverError(f"can driver {self.robot_id}: cannot write the CAN log {cfg.can_log}: {e}") from e
             self._notifier = can.Notifier(self._bus, [_Receiver(self)], timeout=0.05)
             self._start_axes()
+        except (can.CanError, OSError) as e:  # the adapter itself failed (unplugged, its far end gone)
+            where = self._bus_name()
+            self._teardown()
+            raise DriverError(f"can driver {self.robot_id}: cannot start the axes on {where}: {e}") from e
         except BaseException:
             self._teardown()
             raise
