@@ -23,6 +23,7 @@ from conftest import wait_for
 from stack.drivers import DriverError, DriverLimits
 from stack.drivers import odrive
 from stack.drivers.can import CanConfig, CanDriver
+from stack.drivers.testing import FakeClock, settle
 from stack.sim_bridge.odrive_sim import INPUT_REJECTED_ERROR, ODrivePair, SimAxis, SlcanPtyBus
 
 DBC = cantools.database.load_file(os.path.join(os.path.dirname(odrive.__file__), odrive.DBC_FILE))
@@ -51,7 +52,7 @@ def host_frames(frames: list[can.Message]) -> list[tuple[str, dict]]:
 class Rig:
     """A virtual CAN bus with the simulated pair (wall time), a driver and a sniffer recording every frame."""
 
-    def __init__(self, **cfg):
+    def __init__(self, clock=time.monotonic, **cfg):
         self.channel = f"odrive-test-{next(_channels)}-{os.getpid()}"
         self.sim_bus = can.Bus(interface="virtual", channel=self.channel)
         self.sniffer = can.Bus(interface="virtual", channel=self.channel)
@@ -59,7 +60,7 @@ class Rig:
         self.notifier = can.Notifier(self.sniffer, [self.frames.append], timeout=0.02)
         self.pair = ODrivePair(self.sim_bus, vel_ramp_rate=RAMP)
         self.cfg = CanConfig(**{**CFG.__dict__, "channel": self.channel, **cfg})
-        self.driver = CanDriver(7, LIMITS, self.cfg)
+        self.driver = CanDriver(7, LIMITS, self.cfg, clock=clock)
 
     def start(self) -> "Rig":
         self.pair.run_realtime()
@@ -74,6 +75,11 @@ class Rig:
             self.frames.append(m)
         self.sniffer.shutdown()
         self.sim_bus.shutdown()
+
+    def reached(self) -> bool:
+        """The newest command is the left axis's input (it went over the bus)."""
+        left = self.cfg.motor_velocities(*self.driver.last_sent)[0]
+        return self.pair.axes[self.cfg.node_left].input_vel == pytest.approx(left)
 
     def wheel(self, node: int) -> float:
         """Wheel rad/s, positive forward, from the sim's motor velocity."""
@@ -272,7 +278,7 @@ def test_driver_frames_decode_to_the_intended_signals():
     r = Rig().start()
     try:
         r.driver.command(0.5, 0.0)
-        time.sleep(0.05)
+        assert wait_for(r.reached, 1.0)
     finally:
         r.close()
     sent = host_frames(r.frames)
@@ -286,9 +292,12 @@ def test_driver_frames_decode_to_the_intended_signals():
         ("Axis1_Set_Controller_Mode", {"Control_Mode": "VELOCITY_CONTROL", "Input_Mode": "VEL_RAMP"}),
         ("Axis1_Set_Axis_State", {"Axis_Requested_State": "CLOSED_LOOP_CONTROL"}),
     ]
-    name, s = sent[6]
+    zero = {"Input_Vel": 0.0, "Input_Torque_FF": 0.0}
+    assert sent[6:8] == [("Axis0_Set_Input_Vel", zero), ("Axis1_Set_Input_Vel", zero)]  # in closed loop: fed at once
+    moving = [(n, s) for n, s in sent[8:] if s != zero]
+    name, s = moving[0]
     assert name == "Axis0_Set_Input_Vel" and s["Input_Vel"] == pytest.approx(k, rel=1e-6) and s["Input_Torque_FF"] == 0
-    name, s = sent[7]
+    name, s = moving[1]
     assert name == "Axis1_Set_Input_Vel" and s["Input_Vel"] == pytest.approx(-k, rel=1e-6)  # mirrored right motor
     assert sent[-4:] == [("Axis0_Set_Input_Vel", {"Input_Vel": 0.0, "Input_Torque_FF": 0.0}),
                          ("Axis1_Set_Input_Vel", {"Input_Vel": 0.0, "Input_Torque_FF": 0.0}),
@@ -303,15 +312,15 @@ def test_commands_move_the_wheels_and_odometry_follows(rig):
     assert rig.driver.fault is None
     rig.driver.command(0.4, 0.0)  # forward: both wheels forward, equally
     assert wait_for(lambda: abs(rig.wheel(0) - 4.0) < 1e-5 and abs(rig.wheel(1) - 4.0) < 1e-5, 1.0)  # 0.4 m/s / 0.1 m
-    time.sleep(0.05)
+    assert wait_for(lambda: (o := rig.driver.read()) is not None and o.v == pytest.approx(0.4, abs=1e-4), 1.0)
     odo = rig.driver.read()
-    assert odo.v == pytest.approx(0.4, abs=1e-4) and odo.w == pytest.approx(0.0, abs=1e-4)
+    assert odo.w == pytest.approx(0.0, abs=1e-4)
     rig.driver.command(0.2, 1.0)  # turn left: the right wheel faster
     assert wait_for(lambda: abs(rig.wheel(0)) < 1e-3, 1.0)  # left slows to 0 rad/s
     assert rig.wheel(1) == pytest.approx(4.0)  # right stays at 4 rad/s: (0.2 + 1.0 * 0.2) / 0.1
-    time.sleep(0.05)
+    turning = (pytest.approx(0.2, abs=1e-4), pytest.approx(1.0, abs=1e-4))
+    assert wait_for(lambda: (rig.driver.read().v, rig.driver.read().w) == turning, 1.0), rig.driver.read()
     odo = rig.driver.read()
-    assert (odo.v, odo.w) == (pytest.approx(0.2, abs=1e-4), pytest.approx(1.0, abs=1e-4))
     assert abs(time.time() - odo.stamp) < 0.1
     rig.driver.command(-0.3, 0.0)  # backwards, and the keepalive holds it past the axis watchdog
     time.sleep(0.8)
@@ -320,26 +329,40 @@ def test_commands_move_the_wheels_and_odometry_follows(rig):
 
 
 @pytest.mark.parametrize("failure", ["killed", "heartbeats muted"])
-def test_lost_device_is_a_named_fault_with_estop(rig, failure):
-    rig.driver.command(0.3, 0.0)
-    time.sleep(0.1)
-    n0 = len(rig.frames)
-    t0 = time.monotonic()
-    if failure == "killed":
-        rig.pair.stop()
-    else:
-        rig.pair.mute_heartbeats()
-    fault = wait_for(lambda: rig.driver.fault, 1.0)
-    assert fault and time.monotonic() - t0 < 0.5, fault
-    assert "no heartbeat" in fault and ("left axis (node 0)" in fault or "right axis (node 1)" in fault)
-    time.sleep(0.05)
-    tail = host_frames(rig.frames[n0:])
-    for node in (0, 1):
-        assert (f"Axis{node}_Set_Input_Vel", {"Input_Vel": 0.0, "Input_Torque_FF": 0.0}) in tail
-        assert (f"Axis{node}_Estop", {}) in tail
-    assert rig.driver.command(0.5, 0.0) == (0.0, 0.0)  # a faulted driver sends no motion
-    if failure == "heartbeats muted":  # the device itself obeyed the Estop
-        assert rig.pair.axes[0].state == rig.pair.axes[1].state == odrive.AxisState.IDLE
+def test_lost_device_is_a_named_fault_with_estop(failure):
+    """The heartbeat timeout runs on the driver's clock (fake here: it stands still while the last
+    heartbeats arrive, so only the test's steps age them); the keepalive follows the wall and keeps the
+    axes' own watchdogs fed meanwhile."""
+    clock = FakeClock()
+    rig = Rig(clock=clock).start()
+    try:
+        rig.driver.command(0.3, 0.0)
+        assert wait_for(rig.reached, 1.0)
+        n0 = len(rig.frames)
+        if failure == "killed":
+            rig.pair.stop()
+        else:
+            rig.pair.mute_heartbeats()
+        assert settle(lambda: rig.driver.counters["heartbeat"])  # what was on the way has arrived
+        clock.advance(0.25)  # heartbeat_timeout is 0.3 s
+        rig.driver.supervise_once()
+        assert rig.driver.fault is None
+        clock.advance(0.125)
+        rig.driver.supervise_once()
+        fault = rig.driver.fault
+        assert fault and "\n" not in fault, fault
+        assert "left axis (node 0): no heartbeat for 0.38 s; right axis (node 1): no heartbeat for 0.38 s" == fault
+        for node in (0, 1):
+            assert wait_for(lambda: (f"Axis{node}_Estop", {}) in host_frames(rig.frames[n0:]), 1.0)
+        tail = host_frames(rig.frames[n0:])
+        for node in (0, 1):
+            assert (f"Axis{node}_Set_Input_Vel", {"Input_Vel": 0.0, "Input_Torque_FF": 0.0}) in tail
+        assert rig.driver.command(0.5, 0.0) == (0.0, 0.0)  # a faulted driver sends no motion
+        if failure == "heartbeats muted":  # the device itself obeyed the Estop
+            assert wait_for(lambda: rig.pair.axes[0].state == rig.pair.axes[1].state == odrive.AxisState.IDLE, 1.0)
+        assert rig.driver.counters["estop"] == 2
+    finally:
+        rig.close()
 
 
 def test_the_control_step_itself_trips_a_stale_heartbeat():
@@ -367,7 +390,7 @@ def test_the_control_step_itself_trips_a_stale_heartbeat():
 
 def test_axis_error_is_a_fault_naming_the_decoded_error(rig):
     rig.driver.command(0.3, 0.0)
-    time.sleep(0.05)
+    assert wait_for(rig.reached, 1.0)
     rig.pair.inject_error(1, "DRV_FAULT")
     fault = wait_for(lambda: rig.driver.fault, 0.5)
     assert fault and fault.startswith("right axis (node 1): axis error DRV_FAULT"), fault
@@ -396,9 +419,24 @@ def test_open_fails_naming_the_axis_and_reason():
         bus.shutdown()
 
 
+def test_an_adapter_that_cannot_send_is_a_one_line_open_error():
+    bus = can.Bus(interface="virtual", channel=f"odrive-test-{next(_channels)}-{os.getpid()}")
+
+    def refuse(msg, timeout=None):
+        raise can.CanOperationError("Could not write to serial device")
+
+    bus.send = refuse
+    try:
+        with pytest.raises(DriverError, match=r"^can driver 1: cannot start the axes on .*: Could not write to serial "
+                                              r"device$"):
+            CanDriver(1, LIMITS, CFG, bus=bus).open()
+    finally:
+        bus.shutdown()
+
+
 def test_malformed_traffic_is_counted_and_ignored(rig):
     rig.driver.command(0.2, 0.0)
-    time.sleep(0.1)
+    assert wait_for(lambda: rig.driver.read() is not None and rig.driver.read().v == pytest.approx(0.2, abs=1e-3), 1.0)
     rogue = can.Bus(interface="virtual", channel=rig.channel)
     rng = random.Random(5)
     sent = {"bad_dlc": 0, "unknown_cmd": 0, "other_node": 0, "extended_id": 0, "bad_value": 0, "error_frame": 0}
@@ -419,7 +457,9 @@ def test_malformed_traffic_is_counted_and_ignored(rig):
             sent["bad_value"] += 1
             rogue.send(can.Message(is_error_frame=True))
             sent["error_frame"] += 1
-        time.sleep(0.15)
+        assert wait_for(lambda: all(rig.driver.counters.get(k) == n for k, n in sent.items()), 2.0), rig.driver.counters
+        assert wait_for(lambda: all(rig.pair.counters.get(k) == sent[k] for k in
+                                    ("bad_dlc", "unknown_cmd", "other_node", "extended_id", "error_frame")), 2.0)
     finally:
         rogue.shutdown()
     for kind, n in sent.items():
@@ -436,7 +476,7 @@ def test_can_log_writes_an_asc_file_with_both_directions(tmp_path):
     r = Rig(can_log=str(path)).start()
     try:
         r.driver.command(0.1, 0.0)
-        time.sleep(0.05)
+        assert wait_for(r.reached, 1.0)
     finally:
         r.close()
     logged = list(can.ASCReader(str(path)))
@@ -444,7 +484,7 @@ def test_can_log_writes_an_asc_file_with_both_directions(tmp_path):
     rx = {m.arbitration_id for m in logged if m.is_rx}
     assert {0x018, 0x00B, 0x007, 0x00D, 0x02D, 0x027} <= tx  # Clear_Errors, mode, state, Set_Input_Vel
     assert {0x001, 0x009, 0x021, 0x029} <= rx  # heartbeats and encoder estimates of both axes
-    vel = [m for m in logged if m.arbitration_id == 0x02D and any(m.data)]
+    vel = [m for m in logged if m.arbitration_id == 0x02D and dbc_decode(m)[1]["Input_Vel"] != 0.0]
     assert dbc_decode(vel[0])[1]["Input_Vel"] == pytest.approx(-0.1 / (2 * math.pi * 0.1) * 2.0, rel=1e-6)
 
 

@@ -3,7 +3,8 @@
 The CDR payloads are checked against ``rosbags`` deserialisation (and one hand-packed
 Twist); driver and device then talk over real Zenoh sessions through a loopback router
 (scouting off), each test under its own namespace. The device's controller is stepped in
-lock-step sim time; the driver's supervision runs on the wall clock.
+lock-step sim time; the driver's supervision runs on the wall clock, or, where a test counts
+keepalives or times the odometry timeout, on fake clocks stepped by the test.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from conftest import wait_for
 from stack.comm.session import SessionConfig, free_tcp_endpoint, open_session
 from stack.drivers.base import DriverError, DriverLimits
 from stack.drivers.jackal import JackalConfig, JackalDriver
+from stack.drivers.testing import FakeClock, settle
 from stack.drivers.ros2cdr import (CDR_LE_HEADER, LASER_SCAN, ODOMETRY, TWIST, TYPESTORE, CdrError, decode_laserscan,
                                    decode_odometry, decode_twist, encode_laserscan, encode_odometry, encode_twist,
                                    ros_time, serialize)
@@ -156,7 +158,7 @@ class Rig:
             self.driver.open()  # waits for the device's wall-clock odometry
             self._sub = self.s_world.declare_subscriber(
                 self.device.cmd_key, lambda s: self.twists.append(TYPESTORE.deserialize_cdr(s.payload.to_bytes(), TWIST)))
-            assert wait_for(lambda: self.twists, 1.0), "keepalive Twists never arrived"
+            assert wait_for(lambda: (self.driver.stop(), self.twists)[1], 1.0), "the zero Twists never arrived"
         except BaseException:
             self.close()
             raise
@@ -180,17 +182,22 @@ def rig(sessions, tmp_path):
     r.close()
 
 
-def test_commands_reach_the_device_as_the_same_twist_and_are_kept_alive(rig):
-    rig.driver.command(0.5, 0.3)
-    assert wait_for(lambda: rig.target() == (0.5, 0.3)), rig.device.target
-    last = rig.twists[-1]
-    assert (last.linear.x, last.linear.y, last.linear.z) == (0.5, 0.0, 0.0)
-    assert (last.angular.x, last.angular.y, last.angular.z) == (0.0, 0.0, 0.3)
-    n = len(rig.twists)
-    time.sleep(0.55)  # no new command: the keepalive resends it every 0.1 s
-    again = rig.twists[n:]
-    assert len(again) >= 3 and all((t.linear.x, t.angular.z) == (0.5, 0.3) for t in again)
-    assert rig.driver.counters["tx"] >= n + 3
+def test_commands_reach_the_device_as_the_same_twist_and_are_kept_alive(sessions, tmp_path):
+    clock, wall = FakeClock(), FakeClock()
+    rig = Rig(sessions, tmp_path, clock=clock, wall=wall, keepalive_period=0.125).start()
+    try:
+        rig.driver.command(0.5, 0.3)
+        assert wait_for(lambda: rig.target() == (0.5, 0.3)), rig.device.target
+        last = rig.twists[-1]
+        assert (last.linear.x, last.linear.y, last.linear.z) == (0.5, 0.0, 0.0)
+        assert (last.angular.x, last.angular.y, last.angular.z) == (0.0, 0.0, 0.3)
+        n, tx = len(rig.twists), rig.driver.counters["tx"]
+        clock.run(rig.driver, 0.5, 1 / 16, wall)  # no new command: the keepalive resends it every 0.125 s
+        assert rig.driver.counters["tx"] == tx + 4
+        assert wait_for(lambda: len(rig.twists) >= n + 4), len(rig.twists) - n  # (and any still on the way)
+        assert all((t.linear.x, t.angular.z) == (0.5, 0.3) for t in rig.twists[n:])
+    finally:
+        rig.close()
 
 
 def test_commands_are_clamped_to_the_jackal_and_to_the_robot(sessions, tmp_path):
@@ -262,21 +269,30 @@ def test_device_cmd_timeout_stops_the_body_in_lockstep_time(sessions, tmp_path):
         device.close()
 
 
-def test_stale_odometry_faults_the_driver_and_sends_zero(rig):
-    rig.driver.command(0.5, 0.0)
-    assert wait_for(lambda: rig.target() == (0.5, 0.0))
-    assert "odometry stopped" in rig.device.fail()  # the device's injected fault: its EKF dies
-    t0 = time.monotonic()
-    assert wait_for(lambda: rig.driver.fault, 2.0), "no fault"
-    assert 0.45 < time.monotonic() - t0 < 1.0
-    assert "no odometry on" in rig.driver.fault and rig.device.odom_key in rig.driver.fault
-    assert "\n" not in rig.driver.fault
-    assert wait_for(lambda: (rig.twists[-1].linear.x, rig.twists[-1].angular.z) == (0.0, 0.0), 0.5)
-    assert rig.driver.command(0.5, 0.0) == (0.0, 0.0)  # a faulted driver sends no motion
-    assert wait_for(lambda: rig.target() == (0.0, 0.0))  # and the robot's controller has it
-    n = len(rig.twists)
-    time.sleep(0.25)
-    assert len(rig.twists) > n and all((t.linear.x, t.angular.z) == (0.0, 0.0) for t in rig.twists[n:])
+def test_stale_odometry_faults_the_driver_and_sends_zero(sessions, tmp_path):
+    """The odometry timeout on the driver's clock, stepped by the test: the clock stands still while the
+    last samples arrive, so only the test's steps age them."""
+    clock, wall = FakeClock(), FakeClock()
+    rig = Rig(sessions, tmp_path, clock=clock, wall=wall, keepalive_period=0.125).start()
+    try:
+        rig.driver.command(0.5, 0.0)
+        assert wait_for(lambda: rig.target() == (0.5, 0.0))
+        assert "odometry stopped" in rig.device.fail()  # the device's injected fault: its EKF dies
+        assert settle(lambda: rig.driver.counters["odom"])  # what was on the way has arrived
+        clock.run(rig.driver, 0.5, 0.125, wall)  # odom_timeout is 0.5 s
+        assert rig.driver.fault is None
+        clock.run(rig.driver, 0.125, 0.125, wall)
+        assert rig.driver.fault == f"no odometry on {rig.device.odom_key} for 0.62 s"
+        assert wait_for(lambda: (rig.twists[-1].linear.x, rig.twists[-1].angular.z) == (0.0, 0.0), 0.5)
+        assert rig.driver.command(0.5, 0.0) == (0.0, 0.0)  # a faulted driver sends no motion
+        assert wait_for(lambda: rig.target() == (0.0, 0.0))  # and the robot's controller has it
+        n, tx = len(rig.twists), rig.driver.counters["tx"]
+        clock.run(rig.driver, 0.25, 0.125, wall)  # the keepalive goes on: zero, for the controller to hear
+        assert rig.driver.counters["tx"] == tx + 2
+        assert wait_for(lambda: len(rig.twists) >= n + 2)
+        assert all((t.linear.x, t.angular.z) == (0.0, 0.0) for t in rig.twists[n:])
+    finally:
+        rig.close()
 
 
 def test_malformed_traffic_is_counted_and_ignored(sessions, tmp_path):

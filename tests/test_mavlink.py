@@ -2,7 +2,7 @@
 
 The simulated rover is checked on its own in lock-step time with a raw MAVLink client (hand
 values in NED, the target timeout, the GCS failsafe); the driver runs against it in wall
-time. What the driver put on the wire is decoded again with a fresh pymavlink parser.
+time, or, where a test counts keepalives or times the heartbeat timeout, on fake clocks. What the driver put on the wire is decoded again with a fresh pymavlink parser.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from conftest import wait_for
 from stack.drivers import DriverError, DriverLimits
 from stack.drivers.mavlink import (MODE_GUIDED, MODE_HOLD, TYPE_MASK_VEL_YAW_RATE, MavlinkConfig, MavlinkDriver,
                                    forward_speed, mode_name, ned_to_world, result_name, world_to_ned)
+from stack.drivers.testing import FakeClock, settle
 from stack.sim_bridge.rover_sim import SimRover
 
 LIMITS = DriverLimits(v_max=1.0, w_max=2.0, cmd_timeout=5.0)
@@ -39,7 +40,7 @@ def same_angle(a: float, b: float, tol: float = 1e-6) -> bool:
 class Rig:
     """A simulated rover on wall time sending to a driver that listens (``udpin``) on a free loopback port."""
 
-    def __init__(self, heartbeat_period: float = 0.25, **cfg):
+    def __init__(self, heartbeat_period: float = 0.25, clock=time.monotonic, wall=time.monotonic, **cfg):
         self.port = free_udp_port()
         self.sim = SimRover(peer=("127.0.0.1", self.port), heartbeat_period=heartbeat_period, accel_max=4.0,
                             yaw_accel_max=8.0)
@@ -47,7 +48,7 @@ class Rig:
         self.cfg = MavlinkConfig(**{"connection": f"udpin:127.0.0.1:{self.port}", "position_rate": RATE,
                                     "attitude_rate": RATE, "ack_timeout": 0.3, "connect_timeout": 2.0,
                                     "mode_timeout": 2.0, "arm_timeout": 2.0, **cfg})
-        self.driver = MavlinkDriver(4, LIMITS, self.cfg, on_malformed=self.malformed.append)
+        self.driver = MavlinkDriver(4, LIMITS, self.cfg, clock=clock, wall=wall, on_malformed=self.malformed.append)
 
     def start(self) -> "Rig":
         self.sim.run_realtime()
@@ -241,9 +242,8 @@ def test_command_signs_odometry_and_position_fix(rig):
     assert wait_for(lambda: sim.body_velocity() == pytest.approx((0.5, 0.4), abs=1e-6), 1.0), sim.body_velocity()
     assert wait_for(lambda: (o := d.read()) and o.v == pytest.approx(0.5, abs=0.01)
                     and o.w == pytest.approx(0.4, abs=0.01), 1.0), d.read()
-    time.sleep(0.25)
-    yaw_ned1 = world_to_ned(*sim.pose)[2]
-    assert math.remainder(yaw_ned1 - yaw_ned0, 2 * math.pi) < -0.1  # w > 0: NED yaw decreases
+    # w > 0: NED yaw decreases
+    assert wait_for(lambda: math.remainder(world_to_ned(*sim.pose)[2] - yaw_ned0, 2 * math.pi) < -0.1, 1.0)
     x, y, _, _ = d.position_fix()
     yaw = d.read().pose[2]
     sx, sy, syaw = sim.pose
@@ -254,13 +254,20 @@ def test_command_signs_odometry_and_position_fix(rig):
     assert sim.target == pytest.approx((-0.3, -0.5))
 
 
-def test_keepalive_feeds_the_target(rig):
-    rig.driver.command(0.2, 0.0)
-    assert wait_for(lambda: rig.sim.counters.get("target"), 0.5)
-    n0 = rig.sim.counters["target"]
-    time.sleep(1.0)  # no new command: the supervisor resends every 0.25 s
-    assert rig.sim.counters["target"] - n0 >= 3
-    assert rig.sim.body_velocity()[0] == pytest.approx(0.2)
+def test_keepalive_feeds_the_target():
+    clock, wall = FakeClock(), FakeClock()
+    rig = Rig(clock=clock, wall=wall).start()
+    try:
+        rig.driver.command(0.2, 0.0)
+        assert wait_for(lambda: rig.sim.target == pytest.approx((0.2, 0.0)), 0.5)  # the command itself is there
+        n0, hb0 = rig.sim.counters["target"], rig.sim.counters["gcs_heartbeat"]
+        clock.run(rig.driver, 1.0, 0.125, wall)  # no new command: resent every 0.25 s; our heartbeat at 1 Hz
+        assert wait_for(lambda: rig.sim.counters["target"] - n0 == 4, 1.0), rig.sim.counters["target"] - n0
+        assert wait_for(lambda: rig.sim.counters["gcs_heartbeat"] - hb0 == 1, 1.0)
+        assert wait_for(lambda: rig.sim.body_velocity()[0] == pytest.approx(0.2), 1.0)  # the rover kept going
+        assert rig.sim.counters["target"] - n0 == 4
+    finally:
+        rig.close()
 
 
 def test_arming_refused_is_one_clear_line():
@@ -309,17 +316,24 @@ def test_disarmed_under_the_driver_faults(rig):
     assert "disarmed" in rig.driver.fault
 
 
-def test_vehicle_heartbeat_loss_faults_within_3_5_s():
-    r = Rig(heartbeat_period=1.0).start()
+def test_vehicle_heartbeat_loss_faults_after_heartbeat_timeout():
+    """The timeout on the driver's clock (fake: it stands still while the last heartbeats arrive); our
+    heartbeat and the keepalive follow the wall, so the vehicle's failsafe stays fed meanwhile."""
+    clock = FakeClock()
+    r = Rig(heartbeat_period=1.0, clock=clock).start()
     try:
         r.driver.command(0.4, 0.0)
         assert wait_for(lambda: r.sim.target == pytest.approx((0.4, 0.0)), 0.5)
-        t0 = time.monotonic()
         r.sim.stop_heartbeats()
-        assert wait_for(lambda: r.driver.fault, 3.5), "no fault 3.5 s after the heartbeats stopped"
-        elapsed = time.monotonic() - t0
-        assert 1.9 < elapsed < 3.5 and "no HEARTBEAT" in r.driver.fault
+        assert settle(lambda: r.driver.counters["heartbeat"], quiet=0.2)
+        clock.advance(3.0)  # heartbeat_timeout
+        r.driver.supervise_once()
+        assert r.driver.fault is None
+        clock.advance(0.125)
+        r.driver.supervise_once()
+        assert r.driver.fault == "no HEARTBEAT from system 1 for 3.1 s"
         assert wait_for(lambda: r.sim.target == (0.0, 0.0), 0.5)  # the trip sent a zero target
+        assert r.driver.liveness()["heartbeat"] == 3.125
         t1 = time.monotonic()
         r.driver.close()  # the vehicle does not answer: no waiting for ACKs
         assert time.monotonic() - t1 < 0.5
@@ -347,7 +361,7 @@ def test_malformed_and_foreign_traffic_counted_and_ignored(rig):
         for _ in range(3):
             for dg in datagrams:
                 s.sendto(dg, ("127.0.0.1", rig.port))
-        time.sleep(0.4)
+        assert wait_for(lambda: d.counters.get("other_system", 0) >= 6 and d.counters.get("truncated", 0) >= 3, 2.0)
     c = d.counters
     assert c.get("bad_data", 0) >= 3 and c.get("bad_crc", 0) >= 3 and c.get("unknown_msg", 0) >= 3
     assert c.get("truncated", 0) >= 3 and c.get("other_system", 0) >= 6

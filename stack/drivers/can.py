@@ -6,6 +6,8 @@ heartbeats say so. A command becomes one ``Set_Input_Vel`` per axis (wheel kinem
 radius, track, gear and the direction of each wheel), resent every ``keepalive_period`` so
 the axes' watchdogs stay fed. A python-can ``Notifier`` decodes the axes' heartbeats and
 encoder estimates; ``read()`` returns the body speeds of the newest pair of estimates.
+Supervision (the keepalive, the heartbeat timeout, the fault latch, ``counters`` and
+``liveness()``: ``heartbeat_left``, ``heartbeat_right``, ``odom``) is the base class's.
 
 A fault (a heartbeat missing for ``heartbeat_timeout``, an axis error, an axis leaving
 closed loop, a bus error) sends zero velocity and ``Estop`` to both axes and sets
@@ -28,7 +30,7 @@ from typing import Any, Callable, Mapping
 import can
 
 from . import odrive
-from .base import Driver, DriverError, DriverLimits, Odometry, Periodic
+from .base import Driver, DriverError, DriverLimits, Keepalive, Odometry
 
 log = logging.getLogger(__name__)
 
@@ -110,11 +112,11 @@ class _Axis:
         self.side = side
         self.node_id = node_id
         self.label = f"{side} axis (node {node_id})"
+        self.stream = f"heartbeat_{side}"  # its liveness stream
         self.reset()
 
     def reset(self) -> None:
         self.heartbeats = 0
-        self.hb_time: float | None = None
         self.error = 0
         self.state = odrive.AxisState.UNDEFINED
         self.active_errors: int | None = None  # Get_Error reply, when one came
@@ -144,56 +146,45 @@ class CanDriver(Driver):
 
     ``bus``: an already-made ``can.BusABC`` to use instead of opening ``config``'s interface
     (tests: a ``virtual`` bus); it stays the caller's, who shuts it down. ``clock`` times the
-    command watchdog, the heartbeat timeout and the keepalive (the agent's clock: wall time,
-    or sim time in lock-step); ``stamp`` stamps the odometry. ``**params`` are CanConfig
-    fields (the scenario's driver settings) that override ``config``. ``session``, ``keys``
-    and ``on_malformed``/``on_odom`` are the agent's common driver arguments: the first two
-    are not used, ``on_malformed`` is told ``can/<counter>`` for each malformed frame and
-    ``on_odom`` gets each new odometry sample.
+    command watchdog and the heartbeat timeout (the agent's clock: wall time, or sim time in
+    lock-step); the keepalive follows it or ``wall``, whichever is first; ``stamp`` stamps the
+    odometry. ``**params`` are CanConfig fields (the scenario's driver settings) that override
+    ``config``. ``session``, ``keys`` and ``on_malformed``/``on_odom`` are the agent's common
+    driver arguments: the first two are not used, ``on_malformed`` is told ``can/<counter>``
+    for each malformed frame and ``on_odom`` gets each new odometry sample.
     """
 
     name = "can"
     config_class = CanConfig
+    fault_action = "zero velocity and Estop sent"
 
     def __init__(self, robot_id: int, limits: DriverLimits, config: CanConfig | None = None, *,
                  bus: can.BusABC | None = None, clock: Callable[[], float] = time.monotonic,
-                 stamp: Callable[[], float] = time.time, on_odom: Callable[[Odometry], None] | None = None,
-                 on_malformed: Callable[[str], None] | None = None, session: Any = None, keys: Any = None,
-                 **params):
-        super().__init__(robot_id, limits, clock)
+                 wall: Callable[[], float] = time.monotonic, stamp: Callable[[], float] = time.time,
+                 on_odom: Callable[[Odometry], None] | None = None, on_malformed: Callable[[str], None] | None = None,
+                 session: Any = None, keys: Any = None, **params):
+        super().__init__(robot_id, limits, clock, wall, on_malformed)
         self.config = self._configure(config, params)
         self._given_bus = bus
         self._stamp = stamp
         self._on_odom = on_odom
-        self._on_malformed = on_malformed or (lambda key: None)
         self.left = _Axis("left", self.config.node_left)
         self.right = _Axis("right", self.config.node_right)
         self._axes = {a.node_id: a for a in (self.left, self.right)}
-        self.counters: dict[str, int] = {}
         self._bus: can.BusABC | None = None
         self._notifier: can.Notifier | None = None
         self._logger: can.Listener | None = None
-        self._state = threading.Condition()  # guards the axes, _latest, _armed, counters
+        self._state = threading.Condition()  # guards the axes and _latest
         self._tx_lock = threading.Lock()  # one sender at a time: bus and log
-        self._cmd_lock = threading.Lock()  # a command, a keepalive and a trip reach the wire whole and in order
         self._latest: Odometry | None = None
-        self._armed = False  # supervising: both axes reached closed loop
-        self._motor_cmd = (0.0, 0.0)  # [rev/s] what the keepalive resends
-        self._keepalive = Periodic(self.config.keepalive_period, self._clock)
-        self._supervisor: threading.Thread | None = None
-        self._halt = threading.Event()
 
     # --- lifecycle --------------------------------------------------------------------
     def _open(self) -> None:
         cfg = self.config
-        self.fault = None
         with self._state:
             for a in self._axes.values():
                 a.reset()
             self._latest = None
-            self._armed = False
-        self._motor_cmd = (0.0, 0.0)
-        self._halt.clear()
         try:
             self._bus = self._given_bus or can.Bus(interface=cfg.interface, channel=cfg.channel, bitrate=cfg.bitrate,
                                                    **dict(cfg.bus_options))
@@ -207,12 +198,13 @@ class CanDriver(Driver):
                     raise DriverError(f"can driver {self.robot_id}: cannot write the CAN log {cfg.can_log}: {e}") from e
             self._notifier = can.Notifier(self._bus, [_Receiver(self)], timeout=0.05)
             self._start_axes()
+        except (can.CanError, OSError) as e:  # the adapter itself failed (unplugged, its far end gone)
+            where = self._bus_name()
+            self._teardown()
+            raise DriverError(f"can driver {self.robot_id}: cannot start the axes on {where}: {e}") from e
         except BaseException:
             self._teardown()
             raise
-        self._keepalive.done()
-        self._supervisor = threading.Thread(target=self._supervise, name=f"can-supervisor-{self.robot_id}", daemon=True)
-        self._supervisor.start()
 
     def _start_axes(self) -> None:
         """Clear errors, velocity mode, closed loop; wait until both heartbeats confirm it."""
@@ -229,28 +221,18 @@ class CanDriver(Driver):
         def ready(a: _Axis) -> bool:
             return a.heartbeats > seen[a.node_id] and a.state == odrive.AxisState.CLOSED_LOOP_CONTROL and a.error == 0
 
-        deadline = time.monotonic() + cfg.open_timeout
         with self._state:
-            while not all(ready(a) for a in self._axes.values()):
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    why = "; ".join(f"{a.label}: " + (a.status() if a.heartbeats > seen[a.node_id] else "no heartbeat")
-                                    for a in self._axes.values() if not ready(a))
-                    raise DriverError(f"can driver {self.robot_id}: axes not in CLOSED_LOOP_CONTROL after "
-                                      f"{cfg.open_timeout:g} s on {self._bus_name()}: {why}")
-                self._state.wait(left)
-            self._armed = True
+            if not self._state.wait_for(lambda: all(ready(a) for a in self._axes.values()), cfg.open_timeout):
+                why = "; ".join(f"{a.label}: " + (a.status() if a.heartbeats > seen[a.node_id] else "no heartbeat")
+                                for a in self._axes.values() if not ready(a))
+                raise DriverError(f"can driver {self.robot_id}: axes not in CLOSED_LOOP_CONTROL after "
+                                  f"{cfg.open_timeout:g} s on {self._bus_name()}: {why}")
             now = self._clock()
-            for a in self._axes.values():
-                a.hb_time = now
+            for a in self._axes.values():  # the heartbeat timeout counts from here
+                self._alive(a.stream, now)
 
     def _close(self) -> None:
-        self._halt.set()
-        if self._supervisor is not None and self._supervisor is not threading.current_thread():
-            self._supervisor.join(timeout=1.0)
-        self._supervisor = None
-        with self._state:
-            self._armed = False
+        self._stop_supervisor()
         try:
             for node in self._axes:
                 self._tx(odrive.encode("Set_Axis_State", node, Axis_Requested_State=odrive.AxisState.IDLE))
@@ -274,20 +256,13 @@ class CanDriver(Driver):
     # --- commands ---------------------------------------------------------------------
     def _send(self, v: float, w: float) -> None:
         """One Set_Input_Vel per axis. A faulted driver sends nothing: the axes are in Estop."""
-        with self._cmd_lock:
-            if self.fault is not None:
-                return
-            self._motor_cmd = self.config.motor_velocities(v, w)
-            try:
-                self._send_motor()
-            except (can.CanError, OSError) as e:
-                raise DriverError(f"can driver {self.robot_id}: send failed on {self._bus_name()}: {e}") from e
-
-    def _send_motor(self) -> None:
-        """Put the current motor command on the wire (caller holds _cmd_lock)."""
-        self._keepalive.done()
-        for axis, vel in zip((self.left, self.right), self._motor_cmd):
-            self._tx(odrive.encode("Set_Input_Vel", axis.node_id, Input_Vel=vel, Input_Torque_FF=0.0))
+        if self.fault is not None:
+            return
+        try:
+            for axis, vel in zip((self.left, self.right), self.config.motor_velocities(v, w)):
+                self._tx(odrive.encode("Set_Input_Vel", axis.node_id, Input_Vel=vel, Input_Torque_FF=0.0))
+        except (can.CanError, OSError) as e:
+            raise DriverError(f"can driver {self.robot_id}: send failed on {self._bus_name()}: {e}") from e
 
     def _tx(self, msg: can.Message) -> None:
         with self._tx_lock:
@@ -298,7 +273,7 @@ class CanDriver(Driver):
             self._bus.send(msg)
             if self._logger is not None:
                 self._logger(msg)
-        self._count("tx")
+        self.count("tx")
 
     # --- receiving (Notifier thread) --------------------------------------------------
     def _on_frame(self, msg: can.Message) -> None:
@@ -310,10 +285,10 @@ class CanDriver(Driver):
         try:
             f = odrive.decode(msg, self._axes)
         except odrive.ProtocolError as e:
-            return self._malformed(e.kind)
+            return self.count(e.kind, malformed=True)
         axis = self._axes[f.node_id]
         if f.remote:  # requests come from hosts; another host on our axes
-            return self._malformed("unexpected")
+            return self.count("unexpected", malformed=True)
         if f.name == "Heartbeat":
             self._on_heartbeat(axis, f.signals)
         elif f.name == "Get_Encoder_Estimates":
@@ -322,17 +297,16 @@ class CanDriver(Driver):
             with self._state:
                 axis.active_errors, axis.disarm_reason = f.signals["Active_Errors"], f.signals["Disarm_Reason"]
         else:  # a command to our axes from someone else, or a reply we do not use
-            self._malformed("unexpected")
+            self.count("unexpected", malformed=True)
 
     def _on_heartbeat(self, axis: _Axis, s: dict) -> None:
         with self._state:
             axis.heartbeats += 1
-            axis.hb_time = self._clock()
+            self._alive(axis.stream)
             axis.error, axis.state = int(s["Axis_Error"]), int(s["Axis_State"])
-            armed = self._armed
-            self._count("heartbeat")
+            self.count("heartbeat")
             self._state.notify_all()
-        if not armed:
+        if not self._supervising:
             return
         if axis.error:
             self._trip(f"{axis.label}: axis error {odrive.error_text(axis.error)} "
@@ -343,20 +317,21 @@ class CanDriver(Driver):
     def _on_encoder(self, axis: _Axis, s: dict) -> None:
         vel = s["Vel_Estimate"]
         if not math.isfinite(vel):
-            return self._malformed("bad_value")
+            return self.count("bad_value", malformed=True)
         with self._state:
             axis.vel, axis.fresh = vel, True
-            self._count("encoder")
+            self.count("encoder")
             if not (self.left.fresh and self.right.fresh):
                 return
             self.left.fresh = self.right.fresh = False
             v, w = self.config.body_velocity(self.left.vel, self.right.vel)
             odo = self._latest = Odometry(v=v, w=w, stamp=self._stamp())
+        self._alive("odom")
         if self._on_odom is not None:
             self._on_odom(odo)
 
     def _on_bus_error(self, exc: Exception) -> None:
-        self._count("bus_error")
+        self.count("bus_error")
         self._trip(f"CAN bus error on {self._bus_name()}: {exc}")
         self._halt.wait(0.1)  # the Notifier retries at once: do not spin on a dead bus
 
@@ -364,57 +339,36 @@ class CanDriver(Driver):
         with self._state:
             return self._latest
 
-    # --- supervision ------------------------------------------------------------------
-    def _supervise(self) -> None:
-        """Heartbeat timeout on the driver's clock; the keepalive by it or the wall clock (``Periodic``)."""
-        cfg = self.config
-        period = min(0.02, cfg.heartbeat_timeout / 5, cfg.keepalive_period / 2)
-        while not self._halt.wait(period):
-            self._check_health()
-            if self.fault is None and self._keepalive.due():
-                try:
-                    with self._cmd_lock:
-                        if self.fault is None:
-                            self._send_motor()
-                except (can.CanError, OSError) as e:
-                    self._count("tx_error")
-                    self._trip(f"keepalive send failed on {self._bus_name()}: {e}")
+    # --- supervision hooks (the base's supervisor calls them) --------------------------
+    @property
+    def supervise_period(self) -> float:
+        """A fifth of the heartbeat_timeout (and 20 ms at most) between supervision rounds."""
+        return min(0.02, self.config.heartbeat_timeout / 5)
 
-    def _check_health(self) -> None:
+    def _keepalives(self) -> list[Keepalive]:
+        """The last command, feeding the axes' watchdogs; none once faulted (the axes are in Estop)."""
+        return [Keepalive("command", self.config.keepalive_period)]
+
+    def _health(self, now: float) -> str | None:
         """A heartbeat older than ``heartbeat_timeout`` on the driver's clock is a fault."""
-        now = self._clock()
-        with self._state:
-            stale = [(a, now - a.hb_time) for a in self._axes.values()
-                     if a.hb_time is not None and now - a.hb_time > self.config.heartbeat_timeout]
-        if stale:
-            self._trip("; ".join(f"{a.label}: no heartbeat for {age:.2f} s" for a, age in stale))
+        stale = [(a, age) for a in self._axes.values()
+                 if (age := self.age(a.stream, now)) is not None and age > self.config.heartbeat_timeout]
+        return "; ".join(f"{a.label}: no heartbeat for {age:.2f} s" for a, age in stale) or None
 
-    def _trip(self, reason: str) -> None:
-        """First fault wins: zero velocity and Estop to both axes, then report."""
-        with self._cmd_lock:
-            with self._state:
-                if self.fault is not None or not self._armed:
-                    return
-                self.fault = reason
-                self._motor_cmd = (0.0, 0.0)
-            log.error("can driver %s: fault: %s: zero velocity and Estop sent", self.robot_id, reason)
-            for node in self._axes:
-                try:
-                    self._tx(odrive.encode("Set_Input_Vel", node, Input_Vel=0.0, Input_Torque_FF=0.0))
-                    self._tx(odrive.encode("Estop", node))
-                    self._count("estop")
-                except (can.CanError, OSError) as e:  # the bus itself may be what failed
-                    log.error("can driver %s: Estop to node %d failed: %s", self.robot_id, node, e)
+    def _fault_stop(self) -> None:
+        """Zero velocity and Estop to both axes."""
+        for node in self._axes:
+            try:
+                self._tx(odrive.encode("Set_Input_Vel", node, Input_Vel=0.0, Input_Torque_FF=0.0))
+                self._tx(odrive.encode("Estop", node))
+                self.count("estop")
+            except (can.CanError, OSError) as e:  # the bus itself may be what failed
+                log.error("can driver %s: Estop to node %d failed: %s", self.robot_id, node, e)
+
+    def _keepalive_failed(self, keepalive: Keepalive, error: Exception) -> str | None:
+        return f"keepalive send failed on {self._bus_name()}: {error.__cause__ or error}"
 
     # --- helpers ----------------------------------------------------------------------
-    def _count(self, key: str) -> None:
-        with self._state:
-            self.counters[key] = self.counters.get(key, 0) + 1
-
-    def _malformed(self, kind: str) -> None:
-        self._count(kind)
-        self._on_malformed(f"can/{kind}")
-
     def _bus_name(self) -> str:
         if self._bus is not None and self._bus is self._given_bus:
             return self._bus.channel_info

@@ -21,7 +21,8 @@ motion and the keepalive resends zero until the driver is closed and opened agai
 
 Malformed traffic (not CDR, not the expected type, non-finite values) is counted in
 ``counters`` (``odom_not_cdr``, ``scan_bad_value``...) and told to ``on_malformed`` as
-``jackal/<counter>``; nothing raises.
+``jackal/<counter>``; nothing raises. Supervision (the keepalive, the odometry timeout, the
+fault latch, ``counters``, ``liveness()``: ``odom``, ``scan``) is the base class's.
 
 >>> drv = JackalDriver(2, DriverLimits(1.0, 2.0), JackalConfig(namespace="robot2"), session=s)  # doctest: +SKIP
 """
@@ -38,7 +39,7 @@ from typing import Any, Callable
 
 import zenoh
 
-from .base import Driver, DriverError, DriverLimits, Odometry, Periodic
+from .base import Driver, DriverError, DriverLimits, Keepalive, Odometry
 from .ros2cdr import CdrError, LaserScanData, decode_laserscan, decode_odometry, encode_twist
 
 log = logging.getLogger(__name__)
@@ -100,12 +101,12 @@ class JackalDriver(Driver):
     """A ROS 2 Jackal's cmd_vel, filtered odometry and 2D scan over the agent's Zenoh session.
 
     ``session``: the agent's own Zenoh session (the driver declares on it, never opens one).
-    ``clock`` times the odometry timeout and the keepalive (the agent's clock: wall time, or
-    sim time in lock-step); odometry is stamped with its ROS header stamp, so ``stamp`` is
-    not used. ``**params`` are JackalConfig fields (the scenario's driver settings) that
-    override ``config``. ``keys`` is the agent's common driver argument (not used);
-    ``on_malformed`` is told ``jackal/<counter>`` for each malformed payload and ``on_odom``
-    gets each new odometry sample.
+    ``clock`` times the odometry timeout (the agent's clock: wall time, or sim time in
+    lock-step); the keepalive follows it or ``wall``, whichever is first; odometry is stamped
+    with its ROS header stamp, so ``stamp`` is not used. ``**params`` are JackalConfig fields
+    (the scenario's driver settings) that override ``config``. ``keys`` is the agent's common
+    driver argument (not used); ``on_malformed`` is told ``jackal/<counter>`` for each
+    malformed payload and ``on_odom`` gets each new odometry sample.
     """
 
     name = "jackal"
@@ -114,39 +115,29 @@ class JackalDriver(Driver):
 
     def __init__(self, robot_id: int, limits: DriverLimits, config: JackalConfig | None = None, *,
                  session: zenoh.Session, keys: Any = None, clock: Callable[[], float] = time.monotonic,
-                 stamp: Callable[[], float] = time.time, on_odom: Callable[[Odometry], None] | None = None,
+                 wall: Callable[[], float] = time.monotonic, stamp: Callable[[], float] = time.time,
+                 on_odom: Callable[[Odometry], None] | None = None,
                  on_malformed: Callable[[str], None] | None = None, **params):
-        super().__init__(robot_id, limits, clock)
+        super().__init__(robot_id, limits, clock, wall, on_malformed)
         self.config = self._configure(config, params)
         if session is None:
             raise ValueError("jackal driver: needs the agent's zenoh session")
         self._session = session
         self._on_odom = on_odom
-        self._on_malformed = on_malformed or (lambda key: None)
         self.cmd_key = self.config.key(robot_id, self.config.cmd_topic)
         self.odom_key = self.config.key(robot_id, self.config.odom_topic)
         self.scan_key = self.config.key(robot_id, self.config.scan_topic)
-        self.counters: dict[str, int] = {}
-        self._state = threading.Condition()  # guards _latest, _scan, _odom_time, counters
-        self._cmd_lock = threading.Lock()  # a command, a keepalive and a trip reach the wire whole and in order
+        self._state = threading.Condition()  # guards _latest, _scan
         self._latest: Odometry | None = None
         self._scan: LaserScanData | None = None
-        self._odom_time: float | None = None  # driver clock at the newest odometry
-        self._cmd = (0.0, 0.0)  # what the keepalive resends
-        self._keepalive = Periodic(self.config.keepalive_period, self._clock)
         self._pub: Any = None
         self._declared: list = []  # the publisher and subscribers on the agent's session
-        self._halt = threading.Event()
-        self._supervisor: threading.Thread | None = None
 
     # --- lifecycle --------------------------------------------------------------------
     def _open(self) -> None:
         cfg = self.config
-        self.fault = None
         with self._state:
-            self._latest = self._scan = self._odom_time = None
-        self._cmd = (0.0, 0.0)
-        self._halt.clear()
+            self._latest = self._scan = None
         try:
             self._declared += [self._session.declare_subscriber(self.odom_key, self._odom_cb),
                                self._session.declare_subscriber(self.scan_key, self._scan_cb)]
@@ -157,25 +148,14 @@ class JackalDriver(Driver):
             self._teardown()
             raise DriverError(f"jackal driver {self.robot_id}: cannot declare {self.cmd_key} / {self.odom_key}: {e}") from e
         if cfg.open_timeout > 0:
-            deadline = time.monotonic() + cfg.open_timeout
             with self._state:
-                while self._latest is None:
-                    left = deadline - time.monotonic()
-                    if left <= 0:
-                        self._teardown()
-                        raise DriverError(f"jackal driver {self.robot_id}: no odometry on {self.odom_key} within "
-                                          f"{cfg.open_timeout:g} s (is zenoh-bridge-ros2dds up, namespace right?)")
-                    self._state.wait(left)
-        self._next_keepalive = self._clock() + cfg.keepalive_period
-        self._supervisor = threading.Thread(target=self._supervise, name=f"jackal-supervisor-{self.robot_id}",
-                                            daemon=True)
-        self._supervisor.start()
+                if not self._state.wait_for(lambda: self._latest is not None, cfg.open_timeout):
+                    self._teardown()
+                    raise DriverError(f"jackal driver {self.robot_id}: no odometry on {self.odom_key} within "
+                                      f"{cfg.open_timeout:g} s (is zenoh-bridge-ros2dds up, namespace right?)")
 
     def _close(self) -> None:
-        self._halt.set()
-        if self._supervisor is not None and self._supervisor is not threading.current_thread():
-            self._supervisor.join(timeout=1.0)
-        self._supervisor = None
+        self._stop_supervisor()
         self._teardown()
 
     def _teardown(self) -> None:
@@ -191,20 +171,14 @@ class JackalDriver(Driver):
         return max(-cfg.v_max, min(cfg.v_max, v)), max(-cfg.w_max, min(cfg.w_max, w))
 
     def _send(self, v: float, w: float) -> None:
-        with self._cmd_lock:
-            self._cmd = (0.0, 0.0) if self.fault is not None else (v, w)
-            self._put_cmd()
-
-    def _put_cmd(self) -> None:
-        """Put the current command on the wire (caller holds _cmd_lock)."""
-        self._keepalive.done()
-        if self._pub is None:
+        pub = self._pub
+        if pub is None:
             raise DriverError(f"jackal driver {self.robot_id}: {self.cmd_key} is not declared")
         try:
-            self._pub.put(encode_twist(*self._cmd))
+            pub.put(encode_twist(v, w))
         except zenoh.ZError as e:
             raise DriverError(f"jackal driver {self.robot_id}: put on {self.cmd_key} failed: {e}") from e
-        self._count("tx")
+        self.count("tx")
 
     # --- receiving (zenoh callback threads) ---------------------------------------------
     def _odom_cb(self, sample: zenoh.Sample) -> None:
@@ -212,8 +186,9 @@ class JackalDriver(Driver):
         if odo is None:
             return
         with self._state:
-            self._latest, self._odom_time = odo, self._clock()
-            self._count("odom")
+            self._latest = odo
+            self._alive("odom")
+            self.count("odom")
             self._state.notify_all()
         if self._on_odom is not None:
             self._on_odom(odo)
@@ -223,13 +198,14 @@ class JackalDriver(Driver):
         if scan is not None:
             with self._state:
                 self._scan = scan
-                self._count("scan")
+                self._alive("scan")
+                self.count("scan")
 
     def _decode(self, sample: zenoh.Sample, stream: str, decode: Callable[[bytes], Any]) -> Any:
         try:
             return decode(sample.payload.to_bytes())
         except CdrError as e:
-            self._malformed(f"{stream}_{e.kind}")
+            self.count(f"{stream}_{e.kind}", malformed=True)
             log.debug("jackal driver %s: %s on %s: %s", self.robot_id, e.kind, sample.key_expr, e)
             return None
 
@@ -242,50 +218,22 @@ class JackalDriver(Driver):
         with self._state:
             return self._scan
 
-    # --- supervision ------------------------------------------------------------------
-    def _supervise(self) -> None:
-        """Odometry timeout on the driver's clock; the keepalive by it or the wall clock (``Periodic``)."""
-        cfg = self.config
-        period = min(0.02, cfg.odom_timeout / 5, cfg.keepalive_period / 2)
-        while not self._halt.wait(period):
-            self._check_health()
-            if self._keepalive.due():
-                try:
-                    with self._cmd_lock:
-                        self._put_cmd()
-                except DriverError as e:
-                    self._count("tx_error")
-                    log.error("%s", e)
+    # --- supervision hooks (the base's supervisor calls them) --------------------------
+    @property
+    def supervise_period(self) -> float:
+        """A fifth of the odom_timeout (and 20 ms at most) between supervision rounds."""
+        return min(0.02, self.config.odom_timeout / 5)
 
-    def _check_health(self) -> None:
-        """Odometry older than ``odom_timeout`` on the driver's clock is a fault."""
-        now = self._clock()
-        with self._state:
-            age = None if self._odom_time is None else now - self._odom_time
+    def _keepalives(self) -> list[Keepalive]:
+        """The last Twist, faulted or not: after a fault the controller keeps hearing zero."""
+        return [Keepalive("command", self.config.keepalive_period, faulted=True)]
+
+    def _health(self, now: float) -> str | None:
+        """Odometry older than ``odom_timeout`` on the driver's clock (after the first one) is a fault."""
+        age = self.age("odom", now)
         if age is not None and age > self.config.odom_timeout:
-            self._trip(f"no odometry on {self.odom_key} for {age:.2f} s")
-
-    def _trip(self, reason: str) -> None:
-        """First fault wins: zero Twist, then report."""
-        with self._cmd_lock:
-            if self.fault is not None:
-                return
-            self.fault = reason
-            self._cmd = (0.0, 0.0)
-            log.error("jackal driver %s: fault: %s: zero velocity sent", self.robot_id, reason)
-            try:
-                self._put_cmd()
-            except DriverError as e:
-                log.error("%s", e)
-
-    # --- helpers ----------------------------------------------------------------------
-    def _count(self, key: str) -> None:
-        with self._state:
-            self.counters[key] = self.counters.get(key, 0) + 1
-
-    def _malformed(self, kind: str) -> None:
-        self._count(kind)
-        self._on_malformed(f"jackal/{kind}")
+            return f"no odometry on {self.odom_key} for {age:.2f} s"
+        return None
 
 
 __all__ = ["JackalConfig", "JackalDriver", "LaserScanData"]

@@ -21,7 +21,10 @@ the base class then sends no motion. Closing sends a zero target, HOLD and disar
 someone else took the vehicle out of GUIDED (a pilot's MANUAL): we give back only what we hold.
 
 Malformed or foreign traffic (garbage bytes, a bad CRC, unknown message ids, other system
-ids) is counted in ``counters`` and ignored; nothing raises.
+ids) is counted in ``counters`` and ignored; nothing raises. Supervision (our heartbeat, the
+keepalive, the vehicle's heartbeat timeout, the fault latch, ``counters``, ``liveness()``:
+``heartbeat``, ``local_position``, ``attitude``, ``odom``) is the base class's, and its one
+thread also receives (``_poll``).
 
 Frames: NED (x north, y east, yaw clockwise from north) <-> our world (x east, y north, yaw
 counter-clockwise from east): ``ned_to_world`` / ``world_to_ned``, the only copy of it
@@ -43,7 +46,7 @@ from typing import Any, Callable
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from .base import Driver, DriverError, DriverLimits, Odometry, Periodic
+from .base import Driver, DriverError, DriverLimits, Keepalive, Odometry
 
 log = logging.getLogger(__name__)
 
@@ -188,41 +191,37 @@ class MavlinkConfig:
 class MavlinkDriver(Driver):
     """An ArduPilot Rover driven in GUIDED with body-frame velocity + yaw-rate targets.
 
-    ``clock`` times the heartbeat timeout, our heartbeat and the keepalive (the agent's
-    clock); ``stamp`` stamps odometry and position fixes. ``**params`` are MavlinkConfig
-    fields (the scenario's driver settings) that override ``config``. ``session``, ``keys``
-    and ``on_malformed``/``on_odom`` are the agent's common driver arguments: the first two
-    are not used, ``on_malformed`` is told ``mavlink/<counter>`` for each malformed or
-    foreign message and ``on_odom`` gets each new odometry sample.
+    ``clock`` times the vehicle's heartbeat timeout (the agent's clock); our heartbeat and
+    the keepalive follow it or ``wall``, whichever is first (the FS_GCS failsafe keeps the
+    vehicle's time); ``stamp`` stamps odometry and position fixes. ``**params`` are
+    MavlinkConfig fields (the scenario's driver settings) that override ``config``.
+    ``session``, ``keys`` and ``on_malformed``/``on_odom`` are the agent's common driver
+    arguments: the first two are not used, ``on_malformed`` is told ``mavlink/<counter>`` for
+    each malformed or foreign message and ``on_odom`` gets each new odometry sample.
     """
 
     name = "mavlink"
     config_class = MavlinkConfig
+    fault_action = "zero target sent"
 
     def __init__(self, robot_id: int, limits: DriverLimits, config: MavlinkConfig | None = None, *,
-                 clock: Callable[[], float] = time.monotonic, stamp: Callable[[], float] = time.time,
-                 on_odom: Callable[[Odometry], None] | None = None, on_malformed: Callable[[str], None] | None = None,
-                 session: Any = None, keys: Any = None, **params):
-        super().__init__(robot_id, limits, clock)
+                 clock: Callable[[], float] = time.monotonic, wall: Callable[[], float] = time.monotonic,
+                 stamp: Callable[[], float] = time.time, on_odom: Callable[[Odometry], None] | None = None,
+                 on_malformed: Callable[[str], None] | None = None, session: Any = None, keys: Any = None, **params):
+        super().__init__(robot_id, limits, clock, wall, on_malformed)
         self.config = self._configure(config, params)
         self._stamp = stamp
         self._on_odom = on_odom
-        self._on_malformed = on_malformed or (lambda key: None)
-        self.counters: dict[str, int] = {}
         self._conn: Any = None  # a pymavlink mavfile: only its transport (recv/write/select) is used
         self._datagrams = False
         self._enc: mav.MAVLink | None = None
         self._parser = self._new_parser()
-        self._state = threading.Condition()  # guards vehicle state, telemetry, acks, counters, _active
+        self._state = threading.Condition()  # guards vehicle state, telemetry, acks
         self._tx_lock = threading.Lock()  # one sender at a time (the encoder's sequence number)
-        self._cmd_lock = threading.Lock()  # a command, a keepalive and a trip reach the wire whole and in order
-        self._halt = threading.Event()
-        self._threads: list[threading.Thread] = []
         self._reset_state()
 
     def _reset_state(self) -> None:
         self._hb_count = 0
-        self._hb_time: float | None = None
         self._vehicle_type: int | None = None
         self._custom_mode: int | None = None
         self._base_mode = 0
@@ -232,20 +231,31 @@ class MavlinkDriver(Driver):
         self._pos_fresh = self._att_fresh = False
         self._latest: Odometry | None = None
         self._fix: tuple[float, float, float, float] | None = None
-        self._active = False  # supervising: GUIDED and armed by us
         self._taken_over = False  # someone else took the vehicle out of GUIDED (or disarmed it)
-        self._target = (0.0, 0.0)
-        self._keepalive = Periodic(self.config.keepalive_period, self._clock)
         self._boot = time.monotonic()
 
     # --- lifecycle --------------------------------------------------------------------
     def _open(self) -> None:
-        cfg = self.config
-        self.fault = None
         with self._state:
             self._reset_state()
-        self._halt.clear()
         self._parser = self._new_parser()
+        self._connect()
+        self._start_supervisor()  # its _poll receives, and our GCS heartbeat runs through the handshake
+        moded = False
+        try:
+            self._wait_heartbeat()
+            self._send_heartbeat()  # at once: a udpin link only now knows where the vehicle is
+            self._set_mode(MODE_GUIDED, "GUIDED")
+            moded = True  # from here on the vehicle is ours to give back
+            self._handshake()
+        except BaseException:
+            if moded:  # leave the vehicle as safe as we can: HOLD and disarmed, without waiting
+                self._release(wait=False)
+            self._teardown()
+            raise
+
+    def _connect(self) -> None:
+        cfg = self.config
         try:
             self._conn = mavutil.mavlink_connection(cfg.connection, baud=cfg.baud, source_system=cfg.source_system,
                                                     source_component=cfg.source_component, autoreconnect=False)
@@ -253,70 +263,44 @@ class MavlinkDriver(Driver):
             raise DriverError(f"mavlink driver {self.robot_id}: cannot open {cfg.connection}: {e}") from e
         self._datagrams = isinstance(self._conn, mavutil.mavudp)
         self._enc = mav.MAVLink(self._conn, srcSystem=cfg.source_system, srcComponent=cfg.source_component)
-        self._threads = [threading.Thread(target=self._receive, name=f"mavlink-rx-{self.robot_id}", daemon=True),
-                         threading.Thread(target=self._supervise, name=f"mavlink-supervisor-{self.robot_id}", daemon=True)]
-        for t in self._threads:
-            t.start()
-        moded = False
-        try:
-            self._wait_heartbeat()
-            self._send_heartbeat()  # at once: a udpin link only now knows where the vehicle is
-            self._set_mode(MODE_GUIDED, "GUIDED")
-            moded = True  # from here on the vehicle is ours to give back
-            self._wait_state(lambda: self._custom_mode == MODE_GUIDED, cfg.mode_timeout,
-                             lambda: f"mode GUIDED not confirmed: the vehicle's heartbeat still shows "
-                                     f"{self.vehicle_mode} {cfg.mode_timeout:g} s after MAV_RESULT_ACCEPTED")
-            for name, rate in (("LOCAL_POSITION_NED", cfg.position_rate), ("ATTITUDE", cfg.attitude_rate)):
-                self._command(f"message interval for {name}", mav.MAV_CMD_SET_MESSAGE_INTERVAL, TELEMETRY[name], 1e6 / rate)
-            self._command("arming", mav.MAV_CMD_COMPONENT_ARM_DISARM, 1)
-            self._wait_state(self._is_armed, cfg.arm_timeout,
-                             lambda: f"arming not confirmed: the vehicle's heartbeat shows it disarmed "
-                                     f"{cfg.arm_timeout:g} s after MAV_RESULT_ACCEPTED")
-            with self._state:
-                self._active = True
-                self._hb_time = self._clock()
-        except BaseException:
-            if moded:  # leave the vehicle as safe as we can: HOLD and disarmed, without waiting
-                self._release(wait=False)
-            self._teardown()
-            raise
-        with self._cmd_lock:
-            self._keepalive.done()
+
+    def _handshake(self) -> None:
+        """GUIDED accepted: see it in the heartbeat, ask for telemetry, arm and see it armed."""
+        cfg = self.config
+        self._wait_state(lambda: self._custom_mode == MODE_GUIDED, cfg.mode_timeout,
+                         lambda: f"mode GUIDED not confirmed: the vehicle's heartbeat still shows "
+                                 f"{self.vehicle_mode} {cfg.mode_timeout:g} s after MAV_RESULT_ACCEPTED")
+        for name, rate in (("LOCAL_POSITION_NED", cfg.position_rate), ("ATTITUDE", cfg.attitude_rate)):
+            self._command(f"message interval for {name}", mav.MAV_CMD_SET_MESSAGE_INTERVAL, TELEMETRY[name], 1e6 / rate)
+        self._command("arming", mav.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        self._wait_state(self._is_armed, cfg.arm_timeout,
+                         lambda: f"arming not confirmed: the vehicle's heartbeat shows it disarmed "
+                                 f"{cfg.arm_timeout:g} s after MAV_RESULT_ACCEPTED")
+        self._alive("heartbeat")  # the heartbeat timeout counts from here
 
     def _wait_heartbeat(self) -> None:
         cfg = self.config
-        deadline = time.monotonic() + cfg.connect_timeout
         with self._state:
-            while self._hb_count == 0:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise DriverError(f"mavlink driver {self.robot_id}: no HEARTBEAT from system {cfg.target_system} "
-                                      f"component {cfg.target_component} on {cfg.connection} within "
-                                      f"{cfg.connect_timeout:g} s")
-                self._state.wait(left)
+            if not self._state.wait_for(lambda: self._hb_count > 0, cfg.connect_timeout):
+                raise DriverError(f"mavlink driver {self.robot_id}: no HEARTBEAT from system {cfg.target_system} "
+                                  f"component {cfg.target_component} on {cfg.connection} within "
+                                  f"{cfg.connect_timeout:g} s")
             if self._vehicle_type != mav.MAV_TYPE_GROUND_ROVER:
                 raise DriverError(f"mavlink driver {self.robot_id}: system {cfg.target_system} is "
                                   f"{enum_name('MAV_TYPE', self._vehicle_type)}, not MAV_TYPE_GROUND_ROVER")
 
     def _wait_state(self, pred: Callable[[], bool], timeout: float, why: Callable[[], str]) -> None:
-        deadline = time.monotonic() + timeout
         with self._state:
-            while not pred():
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise DriverError(f"mavlink driver {self.robot_id}: {why()}")
-                self._state.wait(left)
+            if not self._state.wait_for(pred, timeout):
+                raise DriverError(f"mavlink driver {self.robot_id}: {why()}")
 
     def _close(self) -> None:
-        with self._state:
-            self._active = False
-            taken_over = self._taken_over
-            alive = self._hb_time is not None and self._clock() - self._hb_time <= self.config.heartbeat_timeout
-        if taken_over:
+        age = self.age("heartbeat")
+        if self._taken_over:
             log.warning("mavlink driver %s: the vehicle left our control (%s): its mode and arming stay as they are",
                         self.robot_id, self.fault)
         else:
-            self._release(wait=alive)
+            self._release(wait=age is not None and age <= self.config.heartbeat_timeout)
         self._teardown()
 
     def _release(self, wait: bool) -> None:
@@ -324,27 +308,22 @@ class MavlinkDriver(Driver):
         steps = (("HOLD on close", mav.MAV_CMD_DO_SET_MODE, (mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, MODE_HOLD)),
                  ("disarming on close", mav.MAV_CMD_COMPONENT_ARM_DISARM, (0,)))
         try:
-            with self._cmd_lock:
-                self._target = (0.0, 0.0)
-                self._send_target()
+            with self._lock:
+                self._send(0.0, 0.0)
             for what, command, params in steps:
                 if wait:
                     try:
                         self._command(what, command, *params)
                     except DriverError as e:
-                        self._count("close_refused")
+                        self.count("close_refused")
                         log.warning("%s", e)
                 else:
                     self._tx_command(command, 0, *params)
-        except OSError as e:  # the link itself is gone: closing must still finish
+        except (OSError, DriverError) as e:  # the link itself is gone: closing must still finish
             log.warning("mavlink driver %s: release on close failed: %s", self.robot_id, e)
 
     def _teardown(self) -> None:
-        self._halt.set()
-        for t in self._threads:
-            if t is not threading.current_thread():
-                t.join(timeout=1.0)
-        self._threads = []
+        self._stop_supervisor()
         with self._tx_lock:
             if self._conn is not None:
                 try:
@@ -355,21 +334,13 @@ class MavlinkDriver(Driver):
 
     # --- commands ---------------------------------------------------------------------
     def _send(self, v: float, w: float) -> None:
-        with self._cmd_lock:
-            self._target = (v, w)
-            try:
-                self._send_target()
-            except OSError as e:
-                raise DriverError(f"mavlink driver {self.robot_id}: send failed on {self.config.connection}: {e}") from e
-
-    def _send_target(self) -> None:
-        """Put the current target on the wire (caller holds _cmd_lock)."""
         cfg = self.config
-        v, w = self._target
-        self._keepalive.done()
-        self._tx(self._encoder().set_position_target_local_ned_encode(
-            self._boot_ms(), cfg.target_system, cfg.target_component, mav.MAV_FRAME_BODY_NED, TYPE_MASK_VEL_YAW_RATE,
-            0.0, 0.0, 0.0, v, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, yaw_rate_ned(w)))
+        try:
+            self._tx(self._encoder().set_position_target_local_ned_encode(
+                self._boot_ms(), cfg.target_system, cfg.target_component, mav.MAV_FRAME_BODY_NED,
+                TYPE_MASK_VEL_YAW_RATE, 0.0, 0.0, 0.0, v, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, yaw_rate_ned(w)))
+        except OSError as e:
+            raise DriverError(f"mavlink driver {self.robot_id}: send failed on {cfg.connection}: {e}") from e
 
     def _set_mode(self, mode: int, name: str) -> None:
         self._command(f"mode {name}", mav.MAV_CMD_DO_SET_MODE, mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, mode)
@@ -382,29 +353,33 @@ class MavlinkDriver(Driver):
             with self._state:
                 self._acks.pop(command, None)
             self._tx_command(command, attempt, *params)
-            deadline = time.monotonic() + cfg.ack_timeout
-            with self._state:
-                while True:
-                    ack = self._acks.get(command)
-                    if ack is not None and ack.result != mav.MAV_RESULT_IN_PROGRESS:
-                        break
-                    if ack is not None:  # IN_PROGRESS: the final ACK follows; do not resend
-                        deadline = max(deadline, time.monotonic() + cfg.ack_timeout)
-                        self._acks.pop(command, None)
-                    left = deadline - time.monotonic()
-                    if left <= 0:
-                        ack = None
-                        break
-                    self._state.wait(left)
+            ack = self._await_ack(command)
             if ack is not None:
                 break
-            self._count("ack_timeout")
+            self.count("ack_timeout")
         if ack is None:
             raise DriverError(f"mavlink driver {self.robot_id}: {what}: no COMMAND_ACK for "
                               f"{enum_name('MAV_CMD', command)} within {cfg.ack_timeout:g} s "
                               f"({1 + cfg.command_retries} tries on {cfg.connection})")
         if ack.result != mav.MAV_RESULT_ACCEPTED:
             raise DriverError(f"mavlink driver {self.robot_id}: {what} refused: {result_name(ack.result)}")
+
+    def _await_ack(self, command: int) -> Any:
+        """The final COMMAND_ACK of ``command`` within ``ack_timeout`` (an IN_PROGRESS one extends it), or None."""
+        timeout = self.config.ack_timeout
+        deadline = time.monotonic() + timeout
+        with self._state:
+            while True:
+                ack = self._acks.get(command)
+                if ack is not None and ack.result != mav.MAV_RESULT_IN_PROGRESS:
+                    return ack
+                if ack is not None:  # IN_PROGRESS: the final ACK follows; do not resend
+                    deadline = max(deadline, time.monotonic() + timeout)
+                    self._acks.pop(command, None)
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return None
+                self._state.wait(left)
 
     def _tx_command(self, command: int, confirmation: int, *params: float) -> None:
         p = (list(params) + [0.0] * 7)[:7]
@@ -420,7 +395,7 @@ class MavlinkDriver(Driver):
             if self._conn is None or self._enc is None:
                 raise OSError("link is closed")
             self._enc.send(msg)  # packs with our ids and sequence, then the link's write()
-        self._count("tx")
+        self.count("tx")
 
     def _encoder(self) -> mav.MAVLink:
         if self._enc is None:
@@ -430,55 +405,59 @@ class MavlinkDriver(Driver):
     def _boot_ms(self) -> int:
         return int((time.monotonic() - self._boot) * 1000) & 0xFFFFFFFF
 
-    # --- receiving (receiver thread) --------------------------------------------------
+    # --- receiving (the supervise thread's _poll) ----------------------------------------
     @staticmethod
     def _new_parser() -> mav.MAVLink:
         p = mav.MAVLink(None)
         p.robust_parsing = True  # bad bytes come back as BAD_DATA messages, never as exceptions
         return p
 
-    def _receive(self) -> None:
+    def _poll(self, timeout: float) -> None:
+        """Receive for up to ``timeout`` s: one datagram (or serial chunk), parsed and handled."""
         conn = self._conn
-        while not self._halt.is_set():
-            try:
-                if not conn.select(0.05):
-                    continue
-                data = conn.recv(self._parser.bytes_needed())
-            except (OSError, ValueError) as e:  # a closed socket, an unplugged serial adapter
-                if self._halt.is_set():
-                    return
-                self._count("rx_error")
+        if conn is None:
+            self._halt.wait(timeout)
+            return
+        try:
+            if not conn.select(timeout):
+                return
+            data = conn.recv(self._parser.bytes_needed())
+        except (OSError, ValueError) as e:  # a closed socket, an unplugged serial adapter
+            if not self._halt.is_set():
+                self.count("rx_error")
                 log.warning("mavlink driver %s: receive failed on %s: %s", self.robot_id, self.config.connection, e)
                 self._halt.wait(0.1)
-                continue
-            if not data:
-                continue
-            msgs = self._parser.parse_buffer(data) or []
-            if self._datagrams and self._parser.buf_len() > 0:  # a packet cut short: it never spans datagrams
-                self._parser = self._new_parser()
-                self._malformed("truncated")
-            for m in msgs:
-                try:
-                    self._on_message(m)
-                except Exception:  # a handler bug must not kill the link
-                    self._count("handler_error")
-                    log.exception("mavlink driver %s: handling %s failed", self.robot_id, m.get_type())
+            return
+        if data:
+            self._parse(data)
+
+    def _parse(self, data: bytes) -> None:
+        msgs = self._parser.parse_buffer(data) or []
+        if self._datagrams and self._parser.buf_len() > 0:  # a packet cut short: it never spans datagrams
+            self._parser = self._new_parser()
+            self.count("truncated", malformed=True)
+        for m in msgs:
+            try:
+                self._on_message(m)
+            except Exception:  # a handler bug must not kill the link
+                self.count("handler_error")
+                log.exception("mavlink driver %s: handling %s failed", self.robot_id, m.get_type())
 
     def _on_message(self, m: Any) -> None:
         kind = m.get_type()
         if kind == "BAD_DATA":
-            return self._malformed("bad_crc" if "CRC" in str(m.reason) else "bad_data")
+            return self.count("bad_crc" if "CRC" in str(m.reason) else "bad_data", malformed=True)
         if kind.startswith("UNKNOWN_"):
-            return self._malformed("unknown_msg")
+            return self.count("unknown_msg", malformed=True)
         cfg = self.config
         if m.get_srcSystem() != cfg.target_system:
-            return self._malformed("other_system")
+            return self.count("other_system", malformed=True)
         if m.get_srcComponent() != cfg.target_component:
-            return self._count("other_component")  # a camera, a gimbal: not ours to follow
+            return self.count("other_component")  # a camera, a gimbal: not ours to follow
         handler = {"HEARTBEAT": self._on_heartbeat, "COMMAND_ACK": self._on_ack,
                    "LOCAL_POSITION_NED": self._on_position, "ATTITUDE": self._on_attitude}.get(kind)
         if handler is None:
-            return self._count("ignored")
+            return self.count("ignored")
         handler(m)
 
     def _on_heartbeat(self, m: Any) -> None:
@@ -486,12 +465,11 @@ class MavlinkDriver(Driver):
         custom = m.custom_mode if m.base_mode & mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED else None
         with self._state:
             self._hb_count += 1
-            self._hb_time = self._clock()
+            self._alive("heartbeat")
             self._vehicle_type, self._custom_mode, self._base_mode = m.type, custom, m.base_mode
-            active = self._active
-            self._count("heartbeat")
+            self.count("heartbeat")
             self._state.notify_all()
-        if not active:
+        if not self._supervising:
             return
         why = []
         if custom != MODE_GUIDED:
@@ -499,33 +477,37 @@ class MavlinkDriver(Driver):
         if not armed:
             why.append("vehicle disarmed")
         if why:
-            self._trip(" and ".join(why), taken_over=True)
+            with self._lock:  # the vehicle is someone else's only if this is the fault that trips
+                self._taken_over = self._taken_over or (self.fault is None and self._supervising)
+                self._trip(" and ".join(why))
 
     def _is_armed(self) -> bool:
         return bool(self._base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED)
 
     def _on_ack(self, m: Any) -> None:
         if m.target_system not in (0, self.config.source_system):
-            return self._count("ack_not_ours")
+            return self.count("ack_not_ours")
         with self._state:
             self._acks[m.command] = m
-            self._count("ack")
+            self.count("ack")
             self._state.notify_all()
 
     def _on_position(self, m: Any) -> None:
         if not all(math.isfinite(x) for x in (m.x, m.y, m.vx, m.vy)):
-            return self._malformed("bad_value")
+            return self.count("bad_value", malformed=True)
         with self._state:
             self._pos, self._pos_fresh = m, True
-            self._count("local_position")
+        self._alive("local_position")
+        self.count("local_position")
         self._odometry()
 
     def _on_attitude(self, m: Any) -> None:
         if not all(math.isfinite(x) for x in (m.yaw, m.yawspeed)):
-            return self._malformed("bad_value")
+            return self.count("bad_value", malformed=True)
         with self._state:
             self._att, self._att_fresh = m, True
-            self._count("attitude")
+        self._alive("attitude")
+        self.count("attitude")
         self._odometry()
 
     def _odometry(self) -> None:
@@ -540,6 +522,7 @@ class MavlinkDriver(Driver):
             odo = self._latest = Odometry(v=forward_speed(p.vx, p.vy, a.yaw), w=yaw_rate_ned(a.yawspeed), stamp=stamp,
                                           pose=pose)
             self._fix = (pose[0], pose[1], self.config.position_std, stamp)
+        self._alive("odom")
         if self._on_odom is not None:
             self._on_odom(odo)
 
@@ -564,60 +547,28 @@ class MavlinkDriver(Driver):
         with self._state:
             return self._is_armed()
 
-    # --- supervision ------------------------------------------------------------------
-    def _supervise(self) -> None:
-        """The vehicle's heartbeat timeout on the driver's clock; our heartbeat and the keepalive by it
-        or the wall clock, whichever is first (``Periodic``: the FS_GCS failsafe keeps the vehicle's time)."""
+    # --- supervision hooks (the base's supervisor calls them) --------------------------
+    @property
+    def supervise_period(self) -> float:
+        """A fifth of the heartbeat_timeout (and 20 ms at most) between supervision rounds."""
+        return min(0.02, self.config.heartbeat_timeout / 5)
+
+    def _keepalives(self) -> list[Keepalive]:
+        """Our GCS heartbeat (always: the FS_GCS failsafe listens for it through the handshake) and the
+        last target (while armed and not faulted)."""
         cfg = self.config
-        period = min(0.02, cfg.keepalive_period / 2, cfg.heartbeat_period / 2)
-        gcs_heartbeat = Periodic(cfg.heartbeat_period, self._clock)
-        while not self._halt.is_set():
-            try:
-                if gcs_heartbeat.due():
-                    gcs_heartbeat.done()
-                    self._send_heartbeat()
-                self._check_health()
-                if self.fault is None and self._keepalive.due():
-                    with self._cmd_lock:
-                        if self.fault is None and self._active:
-                            self._send_target()
-            except OSError as e:
-                self._count("tx_error")
-                if not self._halt.is_set():
-                    self._trip(f"send failed on {cfg.connection}: {e}")
-            self._halt.wait(period)
+        return [Keepalive("gcs_heartbeat", cfg.heartbeat_period, self._send_heartbeat, faulted=True, always=True),
+                Keepalive("command", cfg.keepalive_period)]
 
-    def _check_health(self) -> None:
+    def _health(self, now: float) -> str | None:
         """The vehicle's HEARTBEAT older than ``heartbeat_timeout`` on the driver's clock is a fault."""
-        now = self._clock()
-        with self._state:
-            age = None if not self._active or self._hb_time is None else now - self._hb_time
+        age = self.age("heartbeat", now)
         if age is not None and age > self.config.heartbeat_timeout:
-            self._trip(f"no HEARTBEAT from system {self.config.target_system} for {age:.1f} s")
+            return f"no HEARTBEAT from system {self.config.target_system} for {age:.1f} s"
+        return None
 
-    def _trip(self, reason: str, taken_over: bool = False) -> None:
-        """First fault wins: zero target, then report."""
-        with self._cmd_lock:
-            with self._state:
-                if self.fault is not None or not self._active:
-                    return
-                self.fault = reason
-                self._taken_over = taken_over
-                self._target = (0.0, 0.0)
-            log.error("mavlink driver %s: fault: %s: zero target sent", self.robot_id, reason)
-            try:
-                self._send_target()
-            except OSError as e:  # the link itself may be what failed
-                log.error("mavlink driver %s: zero target failed: %s", self.robot_id, e)
-
-    # --- helpers ----------------------------------------------------------------------
-    def _count(self, key: str) -> None:
-        with self._state:
-            self.counters[key] = self.counters.get(key, 0) + 1
-
-    def _malformed(self, kind: str) -> None:
-        self._count(kind)
-        self._on_malformed(f"mavlink/{kind}")
+    def _keepalive_failed(self, keepalive: Keepalive, error: Exception) -> str | None:
+        return f"send failed on {self.config.connection}: {error.__cause__ or error}"
 
 
 __all__ = ["MODE_GUIDED", "MODE_HOLD", "ROVER_MODES", "TYPE_MASK_VEL_YAW_RATE", "MavlinkConfig", "MavlinkDriver",

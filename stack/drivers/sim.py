@@ -2,7 +2,9 @@
 
 Publishes ``stack/<fleet>/<id>/cmd_vel`` and reads ``.../odom`` and ``.../imu`` from the
 world (``stack.sim_bridge``), which turns the commands into wheel speeds of a
-differential-drive body with acceleration limits.
+differential-drive body with acceleration limits. The world steps the body, so there is
+nothing to keep alive and no device to go stale: of the base's supervision only the command
+watchdog applies (``liveness()`` still shows ``odom`` and ``imu``).
 """
 
 from __future__ import annotations
@@ -28,13 +30,12 @@ class SimDriver(Driver):
                  stamp: Callable[[], float] = time.time, on_malformed: Callable[[str], None] | None = None,
                  on_odom: Callable[[Odometry], None] | None = None, clock: Callable[[], float] = time.monotonic,
                  **params):
-        super().__init__(robot_id, limits, clock)
+        super().__init__(robot_id, limits, clock, on_malformed=on_malformed)
         if params:
             raise ValueError(f"sim driver: unknown settings {', '.join(sorted(params))}")
         self._session = session
         self._keys = keys
         self._stamp = stamp
-        self._on_malformed = on_malformed or (lambda key: None)
         self._on_odom = on_odom
         self._latest: Odometry | None = None
         self._wz: tuple[int, float] | None = None
@@ -56,6 +57,7 @@ class SimDriver(Driver):
             return
         with self._data_lock:
             self._wz = (m.step, m.wz)
+        self._alive("imu")
         if self._on_odom is not None and self._latest is not None:
             self._on_odom(self._latest)
 
@@ -66,6 +68,7 @@ class SimDriver(Driver):
         with self._data_lock:
             pose = (m.x, m.y, m.yaw) if m.x is not None and m.y is not None and m.yaw is not None else None
             odo = self._latest = Odometry(v=m.v, w=m.w, stamp=m.stamp, step=m.step, pose=pose)
+        self._alive("odom")
         if self._on_odom is not None:
             self._on_odom(odo)
 
