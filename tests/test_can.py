@@ -564,3 +564,9 @@ def test_sim_axis_defaults_hold_still_until_velocity_mode():
     axis.handle(odrive.decode(odrive.encode("Set_Input_Vel", 0, Input_Vel=2.0)), 0.0)
     axis.advance(0.2)
     assert axis.vel == 0.0 and axis.errors == 0  # POSITION_CONTROL (the vendor default): no velocity
+
+
+@pytest.mark.parametrize("node", [63, 64, -1, True, 1.0])
+def test_node_ids_are_0_to_62_because_63_is_the_unaddressed_id(node):
+    with pytest.raises(ValueError, match=r"node id .* out of range 0\.\.62 \(63 is CANSimple's unaddressed id\)"):
+        CanConfig(channel="vcan0", node_left=node, node_right=5)

@@ -49,9 +49,9 @@ class CanConfig:
     bitrate: int = 500_000
     """[bit/s] CAN bitrate, given to interfaces that set it (``slcan``); socketcan takes it from ``ip link``."""
     node_left: int = 0
-    """CANSimple node id (0..63) of the left wheel's axis."""
+    """CANSimple node id (0..62; 63 is the unaddressed id) of the left wheel's axis."""
     node_right: int = 1
-    """CANSimple node id (0..63) of the right wheel's axis."""
+    """CANSimple node id (0..62; 63 is the unaddressed id) of the right wheel's axis."""
     wheel_radius: float = 0.098
     """[m] wheel radius."""
     track_width: float = 0.37559
@@ -77,8 +77,9 @@ class CanConfig:
 
     def __post_init__(self):
         for n in (self.node_left, self.node_right):
-            if not 0 <= n <= odrive.MAX_NODE_ID:
-                raise ValueError(f"can driver: node id {n} out of range 0..{odrive.MAX_NODE_ID}")
+            if isinstance(n, bool) or not isinstance(n, int) or not 0 <= n <= odrive.MAX_AXIS_NODE_ID:
+                raise ValueError(f"can driver: node id {n!r} out of range 0..{odrive.MAX_AXIS_NODE_ID} "
+                                 f"({odrive.UNADDRESSED_NODE_ID} is CANSimple's unaddressed id)")
         if self.node_left == self.node_right:
             raise ValueError(f"can driver: both wheels on node {self.node_left}")
         if self.direction_left not in (1, -1) or self.direction_right not in (1, -1):

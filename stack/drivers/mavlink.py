@@ -46,6 +46,7 @@ from typing import Any, Callable
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
+from ..models.geometry import wrap as wrap_angle  # the one angle wrap, (-pi, pi]
 from .base import Driver, DriverError, DriverLimits, Keepalive, Odometry
 
 log = logging.getLogger(__name__)
@@ -98,11 +99,6 @@ def enum_name(enum: str, value: int) -> str:
 
 
 # --- frames (the one copy of the NED <-> world conversion) --------------------------------
-def wrap_angle(a: float) -> float:
-    """Angle to [-pi, pi)."""
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
 def ned_to_world(north: float, east: float, yaw_ned: float) -> tuple[float, float, float]:
     """NED position and heading -> our world frame (x east, y north, yaw counter-clockwise from east)."""
     return east, north, wrap_angle(math.pi / 2.0 - yaw_ned)

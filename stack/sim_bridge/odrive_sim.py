@@ -428,6 +428,10 @@ class ODrivePair:
             self.axes[node_id].inject_error(name, persistent)
 
 
+TX_BACKLOG = 8192
+"""[bytes] adapter -> host data held while the host does not read (a USB-CAN adapter's FIFO, a few hundred frames)."""
+
+
 class SlcanPtyBus(can.BusABC):
     """The adapter end of an slcan (Lawicel) USB-CAN adapter, on a pseudo-terminal.
 
@@ -454,6 +458,8 @@ class SlcanPtyBus(can.BusABC):
         self.bitrate: int | None = None
         self.counters: dict[str, int] = {}
         self._buffer = bytearray()
+        self._tx = bytearray()  # adapter -> host bytes the pty has not taken yet (whole frames but the first)
+        self._tx_partial = False  # the first frame in ``_tx`` is partly on the wire already
         self._frames: deque[can.Message] = deque()
         super().__init__(channel=self.slave_path, **kwargs)
         self.channel_info = f"slcan adapter on {self.slave_path}"
@@ -470,14 +476,26 @@ class SlcanPtyBus(can.BusABC):
         self._write(f"{kind}{ident}{msg.dlc:d}{data}\r")
 
     def _write(self, text: str) -> None:
+        """Frames to the host, never a part of one: what the pty does not take now waits, and a host
+        that stops reading loses whole frames (counted ``overrun``), as an adapter's full FIFO does."""
+        self._tx += text.encode("ascii")
         try:
-            os.write(self._master, text.encode("ascii"))
-        except BlockingIOError:  # the host is not reading: a real adapter drops too
-            _count(self.counters, "overrun")
+            sent = os.write(self._master, self._tx)
+        except BlockingIOError:
+            sent = 0
         except OSError as e:
             if e.errno != errno.EIO:
                 raise can.CanOperationError(f"slcan pty write failed: {e}") from e
-            _count(self.counters, "overrun")
+            sent = 0
+        if sent:
+            self._tx_partial = self._tx[sent - 1:sent] != b"\r"
+        del self._tx[:sent]
+        self._tx_partial = self._tx_partial and bool(self._tx)
+        if len(self._tx) > TX_BACKLOG:
+            keep = self._tx.find(b"\r") + 1 if self._tx_partial else 0  # finish the frame already begun
+            for _ in range(self._tx.count(b"\r", keep)):
+                _count(self.counters, "overrun")
+            del self._tx[keep:]
 
     # --- from the host ------------------------------------------------------------------
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:

@@ -33,6 +33,8 @@ DBC_FILE = "odrive-cansimple-0.6.10.dbc"
 CMD_BITS = 5
 CMD_MASK = (1 << CMD_BITS) - 1
 MAX_NODE_ID = 0x3F  # 11-bit ids: 6 bits of node, 5 bits of command
+UNADDRESSED_NODE_ID = 0x3F  # CANSimple: an axis that has no node id yet answers here; never configure it
+MAX_AXIS_NODE_ID = UNADDRESSED_NODE_ID - 1
 
 
 class AxisState(IntEnum):
@@ -244,7 +246,7 @@ def state_name(value: int) -> str:
 
 
 __all__ = [
-    "AxisState", "ControlMode", "DBC_FILE", "ENUM_SIGNALS", "Frame", "InputMode", "MAX_NODE_ID", "ProcedureResult",
+    "AxisState", "ControlMode", "DBC_FILE", "ENUM_SIGNALS", "Frame", "InputMode", "MAX_AXIS_NODE_ID", "MAX_NODE_ID", "ProcedureResult", "UNADDRESSED_NODE_ID",
     "ProtocolError", "arbitration_id", "cmd_id", "database", "decode", "encode", "error_bit", "error_names",
     "error_text", "message_name", "request", "split_id", "state_name", "template",
 ]
