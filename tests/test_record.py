@@ -324,3 +324,26 @@ def test_a_full_queue_drops_and_counts_and_says_so(tmp_path):
     assert meta["stack.run"]["dropped"] == "2"
     assert "2 dropped" in msgs["/events"][-1][1].message
     assert [m["step"] for _, m in msgs["/clock"]] == [0]
+
+
+def test_the_shipped_layout_shows_only_channels_a_recording_has():
+    """docs/foxglove-layout.json: every topic its panels name is one the recorder writes (robots 0..7)."""
+    layout = json.loads((ROOT / "docs" / "foxglove-layout.json").read_text())
+    known = set(vm.TOPICS.values()) | {vm.robot_topic(r, k) for r in range(8) for k in vm.ROBOT_TOPICS}
+    cfg = layout["configById"]
+    named = set(cfg["3D!fleet"]["topics"]) | {cfg["RosOut!events"]["topicToRender"]}
+    paths = [p["value"] for panel in cfg.values() for p in panel.get("paths", [])]
+    named |= {p.split(".")[0] for p in paths}
+    assert named <= known, named - known
+    assert {"/metrics.formation_error_rms", "/metrics.min_robot_distance", "/metrics.min_obstacle_distance"} <= set(paths)
+    assert _json_fields("metrics") >= {p.split(".", 1)[1] for p in paths if p.startswith("/metrics.")}
+    assert cfg["3D!fleet"]["followTf"] == vm.WORLD and "/comm/links" in named and "/robot_0/scan" in named
+
+    def leaves(node):
+        return [node] if isinstance(node, str) else leaves(node["first"]) + leaves(node["second"])
+
+    assert sorted(leaves(layout["layout"])) == sorted(cfg)
+
+
+def _json_fields(name: str) -> set[str]:
+    return set(json.loads(vm.JSON_SCHEMAS[name].data)["properties"])
