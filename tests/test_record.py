@@ -150,8 +150,11 @@ def _check_against_the_run(out: Path, summary, msgs: dict, meta: dict) -> None:
     assert schemas == want
     assert all(msgs.get(t) for t in want), [t for t in want if not msgs.get(t)]
     # one truth per step: /tf, every robot's pose, the scene, slots and metrics; one scan and one state per robot and step
-    for topic in ["/tf", "/scene/robots", "/formation/slots", "/metrics", "/clock"] + [vm.robot_topic(r, "pose") for r in ids]:
+    for topic in ["/tf", "/formation/slots", "/metrics", "/clock"] + [vm.robot_topic(r, "pose") for r in ids]:
         assert len(msgs[topic]) == steps, topic
+    # the scene (obstacles; bodies locked to the robots' frames) once per second
+    assert len(msgs["/scene/robots"]) == len(msgs["/scene/obstacles"]) == math.ceil(steps * dt - 1e-9)
+    assert {e.frame_id for e in msgs["/scene/robots"][-1][1].entities} == {f"robot_{r}" for r in ids} | {f"robot_{r}/estimate" for r in ids}
     for r in ids:
         assert len(msgs[vm.robot_topic(r, "scan")]) == steps and len(msgs[vm.robot_topic(r, "state")]) == steps
         assert len(msgs[vm.robot_topic(r, "cmd_vel")]) >= steps
@@ -250,7 +253,8 @@ def _ws_client(port: int, seen: dict, advertised: dict, stop: threading.Event) -
 
 
 @pytest.mark.fleet
-def test_a_live_client_receives_every_channel_during_a_run(tmp_path):
+def test_a_live_client_receives_every_channel_of_a_realtime_run_stamped_in_wall_time(tmp_path):
+    """--realtime: the live server serves every channel of the recording while the fleet runs; both on wall time."""
     sc = scenario_dict(duration=5.0)
     path = write_scenario(tmp_path / "d.yaml", sc)
     ep, router = _start_router(tmp_path)
@@ -258,13 +262,16 @@ def test_a_live_client_receives_every_channel_during_a_run(tmp_path):
     seen: dict[str, int] = {}
     advertised: dict[str, str] = {}
     stop = threading.Event()
+    cfg = RecorderConfig(out=tmp_path / "run.mcap", viz=f"tcp/127.0.0.1:{port}")
     try:
         with open_session(SessionConfig(connect=[ep])) as s:
-            with Recorder(s, Keys("live1"), parse_scenario(sc), RecorderConfig(viz=f"tcp/127.0.0.1:{port}")) as rec:
+            with Recorder(s, Keys("live1"), parse_scenario(sc), cfg) as rec:
                 assert rec.port == port
                 client = threading.Thread(target=_ws_client, args=(port, seen, advertised, stop), daemon=True)
                 client.start()
-                proc, rep = run_fleet(path, tmp_path / "out", "--connect", ep, "--fleet", "live1", "--no-plots")
+                t0 = time.time_ns()
+                proc, rep = run_fleet(path, tmp_path / "out", "--connect", ep, "--fleet", "live1", "--realtime", "--no-plots")
+                t1 = time.time_ns()
                 assert rep is not None, proc.stderr
                 stop.set()
                 client.join(10)
@@ -275,6 +282,12 @@ def test_a_live_client_receives_every_channel_during_a_run(tmp_path):
     assert advertised == want
     assert set(seen) == set(want), sorted(set(want) - set(seen))
     assert seen["/tf"] >= 40 and seen["/robot_0/scan"] >= 40
+    summary, msgs, meta, _ = read_mcap(tmp_path / "run.mcap")
+    assert meta["stack.run"]["time"] == "wall"
+    tf = [ns for ns, _ in msgs["/tf"]]
+    assert t0 < tf[0] < tf[-1] < t1 and len(tf) == seen["/tf"]
+    period = np.median(np.diff(tf)) / 1e9
+    assert 0.05 < period < 0.2, period  # the world's wall-clock step, dt = 0.1 s
 
 
 # --- the recorder alone, on real Zenoh ---------------------------------------------------------------------

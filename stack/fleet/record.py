@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import foxglove
+import msgspec
 import zenoh
 from foxglove import Capability, Channel, Context
 from foxglove.channels import FrameTransformsChannel, LaserScanChannel, LogChannel, PoseInFrameChannel, SceneUpdateChannel
@@ -35,7 +36,7 @@ from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 from foxglove.messages import Log, LogLevel
 
 from ..comm import Keys, MessageError, decode
-from ..comm.messages import Clock, CmdVel, Diag, FaultAck, FaultRequest, Scan, State, Truth, WorldStatus
+from ..comm.messages import Clock, CmdVel, Diag, FaultAck, FaultRequest, State, Truth, WorldStatus
 from ..comm.session import EndpointError, check_endpoint
 from ..scenario import Scenario
 from . import viz_messages as vm
@@ -46,8 +47,24 @@ log = logging.getLogger("stack.record")
 DEFAULT_VIZ = "tcp/127.0.0.1:8765"
 COMPRESSION = {"zstd": MCAPCompression.Zstd, "lz4": MCAPCompression.Lz4, "none": None}
 _WORLD_KINDS = {"clock": Clock, "truth": Truth, "status": WorldStatus, "fault": FaultRequest, "fault_ack": FaultAck}
-_ROBOT_KINDS = {"scan": Scan, "state": State, "cmd_vel": CmdVel, "diag": Diag}
+
+
+class _RecordedScan(msgspec.Struct, kw_only=True):
+    """A scan as the recorder decodes it: :class:`~stack.comm.messages.Scan`'s fields and types, without its
+    per-beam range check (the agents do that; here it would cost more than the rest of the recording)."""
+
+    id: int
+    step: int
+    stamp: float
+    angle_min: float
+    angle_increment: float
+    range_max: float
+    ranges: list[float]
+
+
+_ROBOT_KINDS = {"scan": _RecordedScan, "state": State, "cmd_vel": CmdVel, "diag": Diag}
 _STOP = object()
+_JSON = msgspec.json.Encoder()
 
 
 class RecorderError(RuntimeError):
@@ -284,7 +301,7 @@ class Recorder:
         return recv_ns if self.realtime else int(round(sim_t * 1e9))
 
     def write(self, channel, topic: str, msg, ns: int) -> None:
-        channel.log(msg, log_time=ns)
+        channel.log(_JSON.encode(msg) if isinstance(msg, dict) else msg, log_time=ns)
         self.counts[topic] = self.counts.get(topic, 0) + 1
         self._view.last_ns = max(self._view.last_ns, ns)
 

@@ -61,8 +61,7 @@ def _take_scene(rec: Recording, topic: str, ns: int, msg) -> None:
             if e.id.startswith("robot-") and e.cylinders:
                 rec.radius[int(e.id[6:])] = e.cylinders[0].size.x / 2
     elif topic == vm.TOPICS["slots"]:
-        rec.slots.append((ns, [(e.cylinders[0].pose.position.x, e.cylinders[0].pose.position.y)
-                               for e in msg.entities if e.cylinders]))
+        rec.slots.append((ns, [(c.pose.position.x, c.pose.position.y) for e in msg.entities for c in e.cylinders]))
     elif topic == vm.TOPICS["links"]:
         rec.links.append((ns, [(ln.points[0].x, ln.points[0].y, ln.points[1].x, ln.points[1].y,
                                 {kv.key: kv.value for kv in e.metadata}.get("worst", "delivered"))

@@ -28,6 +28,7 @@ def on_clock(rec, ch, v, key: str, m: Clock, recv_ns: int) -> None:
     v.dead = dead
     if v.scene_at is None or m.t - v.scene_at >= rec.cfg.scene_every_s - 1e-9:
         rec.write(ch.obstacles, T["obstacles"], vm.obstacles_scene(rec.sc, ns), ns)
+        rec.write(ch.robots, T["robots"], vm.robots_scene(rec.sc, v.estimates, ns), ns)
         v.scene_at = m.t
     if m.step % rec.cfg.links_window_steps == 0:
         rec.write(ch.links, T["links"], vm.links_scene(v.links_window, v.where, ns), ns)
@@ -40,7 +41,6 @@ def on_truth(rec, ch, v, key: str, m: Truth, recv_ns: int) -> None:
         if rid in ch.robot:
             rec.write(ch.robot[rid]["pose"], vm.robot_topic(rid, "pose"), vm.pose_in_world(x, y, yaw, ns), ns)
     v.where = {rid: (x, y) for rid, x, y in zip(m.ids, m.x, m.y)}
-    rec.write(ch.robots, T["robots"], vm.robots_scene(rec.sc, m, v.estimates, ns), ns)
     leader, targets = vm.slot_targets(rec.sc, m, v.dead)
     rec.write(ch.slots, T["slots"], vm.slots_scene(rec.sc, targets, ns), ns)
     rec.write(ch.metrics, T["metrics"], vm.metrics(rec.sc, m, leader, targets), ns)

@@ -75,6 +75,13 @@ def pose(x: float, y: float, yaw: float = 0.0, z: float = 0.0) -> Pose:
     return Pose(position=Vector3(x=x, y=y, z=z), orientation=quat(yaw))
 
 
+_IDENTITY = Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)
+_WHITE = Color(r=1.0, g=1.0, b=1.0, a=1.0)
+_BODY = Color(r=0.15, g=0.4, b=0.85, a=0.8)
+_ESTIMATE = Color(r=1.0, g=0.85, b=0.1, a=0.35)
+_SLOT = Color(r=0.2, g=0.9, b=0.9, a=0.4)
+
+
 def _replace_all(ns: int, entities: list[SceneEntity]) -> SceneUpdate:
     """A scene that replaces the topic's previous one whole (entities that are gone now disappear)."""
     return SceneUpdate(deletions=[SceneEntityDeletion(timestamp=ts(ns), type=SceneEntityDeletionType.All, id="")],
@@ -125,28 +132,27 @@ def obstacles_scene(sc: Scenario, ns: int) -> SceneUpdate:
     return SceneUpdate(deletions=[], entities=entities)
 
 
-def robots_scene(sc: Scenario, m: Truth, estimates: dict[int, State], ns: int) -> SceneUpdate:
-    """Each robot's body at its true pose (a cylinder and a heading arrow, its id), and a disc of radius
-    sqrt(trace P) at its own estimate: how far it believes it may be off."""
+def robots_scene(sc: Scenario, estimates: dict[int, State], ns: int) -> SceneUpdate:
+    """Each robot's body (a cylinder, a heading arrow, its id) locked to its true frame ``robot_<id>``, and a
+    disc of radius sqrt(trace P) locked to its estimate's frame: how far it believes it may be off. The
+    frames move with ``/tf`` and ``/tf_estimate``, so this scene is sent now and then, not every step."""
     entities = []
-    for rid, x, y, yaw in zip(m.ids, m.x, m.y, m.yaw):
-        r = sc.robot(rid).radius
-        body = _color((0.15, 0.4, 0.85), 0.8)
+    for r in sc.robots:
         entities.append(SceneEntity(
-            timestamp=ts(ns), frame_id=WORLD, id=f"robot-{rid}", metadata=[],
-            cylinders=[CylinderPrimitive(pose=pose(x, y, yaw, 0.15), size=Vector3(x=2 * r, y=2 * r, z=0.3),
-                                         bottom_scale=1.0, top_scale=1.0, color=body)],
-            arrows=[ArrowPrimitive(pose=pose(x, y, yaw, 0.35), shaft_length=r, shaft_diameter=0.08, head_length=0.25,
-                                   head_diameter=0.2, color=_color((1.0, 1.0, 1.0)))],
-            texts=[TextPrimitive(pose=pose(x, y, 0.0, 0.8), billboard=True, font_size=14.0, scale_invariant=True,
-                                 color=_color((1.0, 1.0, 1.0)), text=str(rid))]))
-        est = estimates.get(rid)
+            timestamp=ts(ns), frame_id=frame(r.id), id=f"robot-{r.id}", frame_locked=True, metadata=[],
+            cylinders=[CylinderPrimitive(pose=pose(0.0, 0.0, 0.0, 0.15), size=Vector3(x=2 * r.radius, y=2 * r.radius, z=0.3),
+                                         bottom_scale=1.0, top_scale=1.0, color=_BODY)],
+            arrows=[ArrowPrimitive(pose=pose(0.0, 0.0, 0.0, 0.35), shaft_length=r.radius, shaft_diameter=0.08,
+                                   head_length=0.25, head_diameter=0.2, color=_WHITE)],
+            texts=[TextPrimitive(pose=pose(0.0, 0.0, 0.0, 0.8), billboard=True, font_size=14.0, scale_invariant=True,
+                                 color=_WHITE, text=str(r.id))]))
+        est = estimates.get(r.id)
         if est is not None:
             sigma = max(math.sqrt(max(est.cov_trace or 0.0, 0.0)), 0.05)
             entities.append(SceneEntity(
-                timestamp=ts(ns), frame_id=WORLD, id=f"estimate-{rid}", metadata=[],
-                cylinders=[CylinderPrimitive(pose=pose(est.x, est.y, est.yaw, 0.02), size=Vector3(x=2 * sigma, y=2 * sigma, z=0.04),
-                                             bottom_scale=1.0, top_scale=1.0, color=_color((1.0, 0.85, 0.1), 0.35))]))
+                timestamp=ts(ns), frame_id=frame(r.id, estimate=True), id=f"estimate-{r.id}", frame_locked=True, metadata=[],
+                cylinders=[CylinderPrimitive(pose=pose(0.0, 0.0, 0.0, 0.02), size=Vector3(x=2 * sigma, y=2 * sigma, z=0.04),
+                                             bottom_scale=1.0, top_scale=1.0, color=_ESTIMATE)]))
     return SceneUpdate(deletions=[], entities=entities)
 
 
@@ -164,17 +170,13 @@ def slot_targets(sc: Scenario, m: Truth, dead: set[int]) -> tuple[int | None, di
 
 
 def slots_scene(sc: Scenario, targets: dict[int, tuple[float, float]], ns: int) -> SceneUpdate:
-    """The followers' slots now: a flat ring per slot, labelled with the follower's id."""
-    entities = []
-    for rid, (x, y) in targets.items():
-        r = sc.robot(rid).radius
-        entities.append(SceneEntity(
-            timestamp=ts(ns), frame_id=WORLD, id=f"slot-{rid}", metadata=[],
-            cylinders=[CylinderPrimitive(pose=pose(x, y, 0.0, 0.01), size=Vector3(x=2 * r, y=2 * r, z=0.02),
-                                         bottom_scale=1.0, top_scale=1.0, color=_color((0.2, 0.9, 0.9), 0.3))],
-            texts=[TextPrimitive(pose=pose(x, y, 0.0, 0.3), billboard=True, font_size=11.0, scale_invariant=True,
-                                 color=_color((0.2, 0.9, 0.9)), text=f"slot {rid}")]))
-    return _replace_all(ns, entities)
+    """The followers' slots now: one entity, a flat ring per slot (its id in the entity's metadata, in order)."""
+    rings = [CylinderPrimitive(pose=Pose(position=Vector3(x=x, y=y, z=0.01), orientation=_IDENTITY),
+                               size=Vector3(x=2 * sc.robot(rid).radius, y=2 * sc.robot(rid).radius, z=0.02),
+                               bottom_scale=1.0, top_scale=1.0, color=_SLOT) for rid, (x, y) in targets.items()]
+    entity = SceneEntity(timestamp=ts(ns), frame_id=WORLD, id="slots", cylinders=rings,
+                         metadata=[KeyValuePair(key="robots", value=",".join(str(r) for r in targets))])
+    return _replace_all(ns, [entity])
 
 
 def metrics(sc: Scenario, m: Truth, leader: int | None, targets: dict[int, tuple[float, float]]) -> dict:
