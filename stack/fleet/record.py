@@ -36,7 +36,7 @@ from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 from foxglove.messages import Log, LogLevel
 
 from ..comm import Keys, MessageError, decode
-from ..comm.messages import Clock, CmdVel, Diag, FaultAck, FaultRequest, State, Truth, WorldStatus
+from ..comm.messages import Clock, CmdVel, Diag, FaultAck, FaultRequest, Scan, State, Truth, WorldStatus
 from ..comm.session import EndpointError, check_endpoint
 from ..scenario import Scenario
 from . import viz_messages as vm
@@ -49,17 +49,12 @@ COMPRESSION = {"zstd": MCAPCompression.Zstd, "lz4": MCAPCompression.Lz4, "none":
 _WORLD_KINDS = {"clock": Clock, "truth": Truth, "status": WorldStatus, "fault": FaultRequest, "fault_ack": FaultAck}
 
 
-class _RecordedScan(msgspec.Struct, kw_only=True):
+class _RecordedScan(Scan):
     """A scan as the recorder decodes it: :class:`~stack.comm.messages.Scan`'s fields and types, without its
     per-beam range check (the agents do that; here it would cost more than the rest of the recording)."""
 
-    id: int
-    step: int
-    stamp: float
-    angle_min: float
-    angle_increment: float
-    range_max: float
-    ranges: list[float]
+    def __post_init__(self) -> None:
+        pass
 
 
 _ROBOT_KINDS = {"scan": _RecordedScan, "state": State, "cmd_vel": CmdVel, "diag": Diag}
