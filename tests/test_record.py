@@ -174,6 +174,8 @@ def _check_against_the_run(out: Path, summary, msgs: dict, meta: dict) -> None:
     # scans in the robot's frame, as many beams as the scenario's lidar
     scan = msgs[vm.robot_topic(ids[0], "scan")][0][1]
     assert scan.frame_id == f"robot_{ids[0]}" and len(scan.ranges) == 180
+    hits = [r for rid in ids for _, m in msgs[vm.robot_topic(rid, "scan")] for r in m.ranges]  # followers see the others
+    assert all(r == math.inf or 0 <= r < vm.NO_RETURN * 5.0 for r in hits) and math.inf in hits and min(hits) < 5.0
     assert {m["policy"] for _, m in msgs[vm.robot_topic(ids[0], "state")]} == {"pid"}
     assert all(m["cov_trace"] >= 0 for _, m in msgs[vm.robot_topic(ids[0], "state")])
     events = [m.message for _, m in msgs["/events"]]

@@ -128,10 +128,14 @@ def frame_times(rec: Recording, max_frames: int) -> list[int]:
     return [times[round(i * (len(times) - 1) / (max_frames - 1))] for i in range(max_frames)]
 
 
-def _bounds(rec: Recording, margin: float = 2.0) -> tuple[float, float, float, float]:
+def _bounds(rec: Recording, aspect: float, margin: float = 2.0) -> tuple[float, float, float, float]:
+    """Where the robots went (plus a margin), widened to the picture's height/width ``aspect``."""
     xs = [p[0] for _, d in rec.truth for p in d.values()]
     ys = [p[1] for _, d in rec.truth for p in d.values()]
-    return min(xs) - margin, max(xs) + margin, min(ys) - margin, max(ys) + margin
+    x0, x1, y0, y1 = min(xs) - margin, max(xs) + margin, min(ys) - margin, max(ys) + margin
+    w, h = max(x1 - x0, (y1 - y0) / aspect), max(y1 - y0, (x1 - x0) * aspect)
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    return cx - w / 2, cx + w / 2, cy - h / 2, cy + h / 2
 
 
 def _scene(ax, rec: Recording):
@@ -171,9 +175,8 @@ def _scan_points(rec: Recording, ns: int, poses: dict) -> list[tuple[float, floa
             continue
         a0, a1, ranges = scan
         inc = (a1 - a0) / (len(ranges) - 1) if len(ranges) > 1 else 0.0
-        rmax = max(ranges)
         for i, r in enumerate(ranges):
-            if r < rmax - 1e-6:  # a hit (beams that saw nothing read range_max)
+            if math.isfinite(r):  # a hit (beams that saw nothing are +inf)
                 a = p[2] + a0 + i * inc
                 pts.append((p[0] + r * math.cos(a), p[1] + r * math.sin(a)))
     return pts
@@ -223,7 +226,7 @@ def render_replay(run_dir: str | Path, out: str | Path = "replay.gif", *, max_fr
 
     dpi = 100
     fig, ax = plt.subplots(figsize=(width / dpi, 0.75 * width / dpi), dpi=dpi)
-    x0, x1, y0, y1 = _bounds(rec)
+    x0, x1, y0, y1 = _bounds(rec, aspect=0.75)
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
     ax.set_aspect("equal", adjustable="box")

@@ -111,10 +111,17 @@ def pose_in_world(x: float, y: float, yaw: float, ns: int) -> PoseInFrame:
     return PoseInFrame(timestamp=ts(ns), frame_id=WORLD, pose=pose(x, y, yaw))
 
 
+NO_RETURN = 0.98
+"""Beams that read at least this fraction of ``range_max`` saw nothing (the reading is range_max plus noise):
+written as +inf, the REP 117 convention viewers draw as no return."""
+
+
 def laser_scan(m: Scan, ns: int) -> LaserScan:
     """The scan in the robot's own (true) frame: the world simulated it from there."""
+    r = np.asarray(m.ranges, dtype=float)
+    ranges = np.where(r < NO_RETURN * m.range_max, r, np.inf).tolist()
     return LaserScan(timestamp=ts(ns), frame_id=frame(m.id), pose=pose(0.0, 0.0), start_angle=m.angle_min,
-                     end_angle=m.angle_min + m.angle_increment * (len(m.ranges) - 1), ranges=m.ranges, intensities=[])
+                     end_angle=m.angle_min + m.angle_increment * (len(ranges) - 1), ranges=ranges, intensities=[])
 
 
 def obstacles_scene(sc: Scenario, ns: int) -> SceneUpdate:
