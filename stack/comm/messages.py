@@ -208,6 +208,8 @@ class Diag(_Msg):
     device_odom_late: int = 0  # lock-step steps that went on without a new odometry sample from the device
     scans_from_driver: int = 0  # real time: scans the robot's own driver read (a Jackal's LaserScan)
     shield_masked: int | None = None  # --policy drl: steps at which the action shield overruled the network
+    links: dict[int, dict[str, int]] | None = None  # sender id -> {delivered, dropped_range, dropped_loss}, cumulative
+    # (RadioModel.links()): the comm graph a recorder draws; None from senders that do not count per link
 
 
 _ENCODER = msgspec.msgpack.Encoder()

@@ -61,6 +61,7 @@ class RadioModel:
         self.cfg = cfg
         self.receiver_id = receiver_id
         self.counters = RadioCounters()
+        self.by_sender: dict[int, RadioCounters] = {}  # the same counters per sender: the comm graph's links
         self._channels: dict[int, _Channel] = {}
         self._queue: list[tuple[float, int, int, Any]] = []
         self._tie = itertools.count()
@@ -88,12 +89,16 @@ class RadioModel:
               stamp: float, payload: Any) -> bool:
         """A message arrived from ``sender``; queue it for delivery or drop it. True if queued."""
         c = self.counters
+        link = self._link(sender)
         c.received += 1
+        link.received += 1
         if math.hypot(sender_xy[0] - receiver_xy[0], sender_xy[1] - receiver_xy[1]) > self.cfg.comm_range:
             c.dropped_range += 1
+            link.dropped_range += 1
             return False
         if self.lost(sender):
             c.dropped_loss += 1
+            link.dropped_loss += 1
             return False
         delay = self.cfg.latency_ms
         if self.cfg.jitter_ms > 0:
@@ -105,9 +110,23 @@ class RadioModel:
         """Messages whose latency has elapsed by ``now`` (receiver clock), oldest first."""
         out = []
         while self._queue and self._queue[0][0] <= now + 1e-9:
-            out.append(heapq.heappop(self._queue)[3])
+            _, sender, _, payload = heapq.heappop(self._queue)
+            self._link(sender).delivered += 1
+            out.append(payload)
         self.counters.delivered += len(out)
         return out
+
+    def _link(self, sender: int) -> RadioCounters:
+        link = self.by_sender.get(sender)
+        if link is None:
+            link = self.by_sender[sender] = RadioCounters()
+        return link
+
+    def links(self) -> dict[int, dict[str, int]]:
+        """Per sender, what this receiver's model did with its messages so far (cumulative): the value of
+        ``Diag.links``, from which a recorder draws the comm graph (delivered / dropped by range / by loss)."""
+        return {sender: {"delivered": c.delivered, "dropped_range": c.dropped_range, "dropped_loss": c.dropped_loss}
+                for sender, c in sorted(self.by_sender.items())}
 
     @property
     def pending(self) -> int:
