@@ -86,8 +86,18 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--zenoh-config", metavar="FILE", help="zenoh json5 config (deploy/: TLS, access control) for the fleet's sessions")
     r.add_argument("--allow-remote", action="store_true", help="allow router endpoints off loopback (multi-host)")
     r.add_argument("--no-progress", action="store_true", help="no live progress line")
-    r.add_argument("--no-plots", action="store_true", help="skip trajectories.png and distances.png")
+    r.add_argument("--no-plots", action="store_true", help="skip trajectories.png, distances.png and replay.gif")
+    r.add_argument("--no-record", action="store_true", help="do not write run.mcap (nor replay.gif)")
+    r.add_argument("--viz", nargs="?", const="tcp/127.0.0.1:8765", metavar="EP",
+                   help="serve the run live to Foxglove / Lichtblick (ws) on EP (default tcp/127.0.0.1:8765; "
+                        "off loopback only with --allow-remote)")
     r.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    p = sub.add_parser("replay", help="animate a run from its run.mcap (replay.gif), without any app")
+    p.add_argument("run_dir", type=Path, help="a run's folder (or its run.mcap)")
+    p.add_argument("--out", default="replay.gif", help="GIF to write, relative to RUN_DIR (default replay.gif)")
+    p.add_argument("--max-frames", type=positive_int, default=150)
+    p.add_argument("--fps", type=_positive, default=10.0)
+    p.add_argument("--width", type=positive_int, default=640, help="pixels (height: 3/4 of it)")
     b = sub.add_parser("bench", help="every scenario x every fitting policy; one table (markdown + JSON)")
     b.add_argument("--out", type=Path, default=Path("runs/bench"))
     b.add_argument("--scenarios", type=Path, default=Path("scenarios"), help="folder of scenario files")
@@ -151,6 +161,13 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
             raise ScenarioError(f"--zenoh-config {e}") from None
     if a.gui and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         raise ScenarioError("--gui: no display (DISPLAY is not set); run without --gui, or under a desktop or Xvfb")
+    if a.viz is not None:
+        from .record import parse_viz_endpoint
+
+        try:
+            parse_viz_endpoint(a.viz, a.allow_remote)
+        except ValueError as e:
+            raise ScenarioError(str(e)) from None
     out = a.out or Path("runs") / sc.name
     if out.exists() and not out.is_dir():
         raise ScenarioError(f"--out {out}: exists and is not a folder")
@@ -158,11 +175,16 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
                        device_faults=a.device_fault, can_log=a.can_log,
                        progress=not a.no_progress, plots=not a.no_plots, connect=a.connect,
                        external_agents=a.external_agents, wait_agents_s=a.wait_agents, fleet=a.fleet,
-                       zenoh_config=a.zenoh_config, allow_remote=a.allow_remote)
+                       zenoh_config=a.zenoh_config, allow_remote=a.allow_remote, record=not a.no_record, viz=a.viz)
 
 
 def cli(argv: list[str] | None = None) -> int:
     a = parser().parse_args(argv)
+    if a.cmd == "replay":
+        from .replay import main as replay_main
+
+        return replay_main([str(a.run_dir), "--out", a.out, "--max-frames", str(a.max_frames), "--fps", str(a.fps),
+                            "--width", str(a.width)])
     if a.cmd == "bench":
         from .bench import main as bench_main
 
@@ -212,6 +234,9 @@ def _summary(rep: dict, out: Path, code: int) -> None:
     print(f"report: {out / 'report.json'}")
     if (out / "trajectories.png").exists():
         print(f"plots:  {out / 'trajectories.png'}, {out / 'distances.png'}")
+    if (out / "run.mcap").exists():
+        print(f"recording: {out / 'run.mcap'} (Foxglove / Lichtblick: docs/visualisation.md)"
+              + (f"; replay: {out / 'replay.gif'}" if (out / "replay.gif").exists() else ""))
 
 
 def main() -> None:

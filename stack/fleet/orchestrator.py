@@ -78,10 +78,14 @@ class FleetConfig:
     """A zenoh json5 file (deploy/: TLS, access control) for our own session and the world's."""
     allow_remote: bool = False
     """Allow router endpoints off loopback (multi-host)."""
+    record: bool = True
+    """Write ``run.mcap`` (Foxglove schemas; ``stack.fleet.record``) and, with ``plots``, ``replay.gif``."""
+    viz: str | None = None
+    """Serve the recording's channels live (Foxglove WebSocket) on this ``tcp/HOST:PORT``; None: no live view."""
 
 
 RUN_OUTPUTS = ("report.json", "truth.npz", "world.json", "devices.json", "scenario.agents.yaml", "trajectories.png",
-               "distances.png", "errors.png")
+               "distances.png", "errors.png", "run.mcap", "replay.gif")
 """What a run writes into its folder (besides ``logs/`` and the resolved scenario)."""
 
 
@@ -145,6 +149,7 @@ class Fleet:
         self.crashed: list[dict] = []
         self.session: zenoh.Session | None = None
         self.mon: Monitor | None = None
+        self.recorder = None
         self.ack_pub = None
         self.diags: dict = {}
         self.estimates: dict = {}
@@ -171,10 +176,30 @@ class Fleet:
         except SessionError as e:
             self._abort("orchestrator", None, str(e))
         self.mon = Monitor(self.session, self.keys)
+        self._start_recorder()
         self._start_world()
         self._start_agents()
         self.ack_pub = self.session.declare_publisher(self.keys.world("fault_ack"),
                                                       congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def _start_recorder(self) -> None:
+        """The recording (and the live view) listen on our session from before the world's first step."""
+        cfg = self.cfg
+        if not (cfg.record or cfg.viz):
+            return
+        from .record import Recorder, RecorderConfig, RecorderError
+
+        try:
+            self.recorder = Recorder(self.session, self.keys, self.sc, RecorderConfig(
+                out=self.out / "run.mcap" if cfg.record else None, viz=cfg.viz, allow_remote=cfg.allow_remote,
+                realtime=cfg.realtime)).start()
+        except (RecorderError, ValueError) as e:
+            self._abort("recorder", None, str(e))
+
+    def _stop_recorder(self) -> None:
+        if self.recorder is not None:
+            self.recorder.stop()
+            self.recorder = None
 
     def _abort(self, process: str, exit_code: int | None, why: str) -> None:
         self.crashed.append({"process": process, "exit_code": exit_code, "sim_time_s": 0.0, "log_tail": why})
@@ -324,6 +349,7 @@ class Fleet:
             wrc = world.stop()
         if wrc != 0:
             self.crashed.append({"process": "world", "exit_code": wrc, "sim_time_s": self.mon.t, "log_tail": world.tail()})
+        self._stop_recorder()
         self.mon.close()
         self.diags, self.estimates = self.mon.results()
 
@@ -336,6 +362,7 @@ class Fleet:
         for pr in self.procs.values():
             if pr.poll() is None:
                 pr.stop(5)
+        self._stop_recorder()
         if self.session is not None:
             if self.ack_pub is not None:
                 self.ack_pub.undeclare()
@@ -363,8 +390,20 @@ class Fleet:
         report = build_report(self.sc, self.out, diags=self.diags, estimates=self.estimates, faults=self.faults,
                               crashed=self.crashed, wall_time_s=time.monotonic() - self.wall0,
                               realtime=self.cfg.realtime, plots=self.cfg.plots)
+        self._replay()
         code = EXIT_CRASH if self.crashed else (EXIT_OK if report["success"] else EXIT_FAILED)
         return code, report
+
+    def _replay(self) -> None:
+        """``replay.gif`` from the recording (with the plots); a replay that cannot be drawn is a warning."""
+        if not (self.cfg.record and self.cfg.plots and (self.out / "run.mcap").exists()):
+            return
+        from .replay import ReplayError, render_replay
+
+        try:
+            render_replay(self.out)
+        except ReplayError as e:
+            log.warning("no replay: %s", e)
 
 
 def run_fleet(cfg: FleetConfig) -> tuple[int, dict]:
