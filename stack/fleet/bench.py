@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 from ..policies import available
-from ..scenario import ScenarioError, load_scenario, with_overrides
+from ..scenario import POLICIES, ScenarioError, load_scenario, with_overrides
 from .orchestrator import FleetConfig, run_fleet
 
 COLUMNS = ("scenario", "policy", "success", "sim_time_s", "leader_time_to_goal_s", "collisions", "min_robot_distance_m",
@@ -55,9 +55,10 @@ def convergence_cell(rep: dict) -> str | None:
     return "; ".join(cells) or None
 
 
-def main(folder: Path, out: Path, seed: int | None = None) -> int:
+def main(folder: Path, out: Path, seed: int | None = None, policies: list[str] | None = None) -> int:
+    """The bench over ``folder``; ``policies``: these instead of each scenario's ``bench.policies``."""
     try:
-        plan, skipped = _plan(folder)
+        plan, skipped = _plan(folder, policies)
     except ScenarioError as e:
         print(f"stack-fleet bench: {e}", file=sys.stderr)
         return 2
@@ -85,6 +86,30 @@ def main(folder: Path, out: Path, seed: int | None = None) -> int:
     print(table)
     print(f"\ntable: {out / 'bench.md'}, {out / 'bench.json'}")
     return 0 if all(r["exit"] == 0 for r in rows) else 1
+
+
+def random_bench(n: int, out: Path, *, first_seed: int = 0, robots: int | None = None, formation: str | None = None,
+                 density: str | None = None, policies: list[str] | None = None, seed: int | None = None) -> int:
+    """``stack-fleet bench --random N``: the generated courses of seeds first_seed .. first_seed + N - 1
+    (``stack.fleet.courses``; never the held-out seeds), written to OUT/courses/, then the bench over them."""
+    from .courses import CourseError, random_scenarios, write_course
+
+    bad = [p for p in (policies or []) if p not in POLICIES]
+    if bad:
+        print(f"stack-fleet bench: --policies: unknown policy {bad[0]!r} (one of {', '.join(POLICIES)})", file=sys.stderr)
+        return 2
+    try:
+        courses = random_scenarios(n, first_seed, robots, formation, density)
+    except CourseError as e:
+        print(f"stack-fleet bench: {e}", file=sys.stderr)
+        return 2
+    folder = out / "courses"
+    folder.mkdir(parents=True, exist_ok=True)
+    for old in folder.glob("*.yaml"):  # the folder is the bench's plan: only this call's courses
+        old.unlink()
+    for c in courses:
+        write_course(c, folder / f"{c.scenario['name']}.yaml")
+    return main(folder, out, seed=seed, policies=policies)
 
 
 # --- sweeps (issue 9): one comm parameter over values x seeds, per scenario and policy ------------

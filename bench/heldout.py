@@ -1,0 +1,201 @@
+"""Held-out results: every formation policy on generated courses nobody trained, tuned or tested on.
+
+  python bench/heldout.py --courses 34 --jobs 2 --out runs/heldout                 # the README's table
+  python bench/heldout.py --courses 2 --densities low --policies pid --out runs/heldout-smoke
+
+Courses: ``stack.fleet.courses`` with the held-out seeds HELDOUT_START .. HELDOUT_START + N - 1
+(1_000_000 ..; ``docs/courses.md``), the same N seeds at every density level (so a seed keeps its
+formation and robot count across densities). A policy runs on the courses that list it in
+``bench.policies``: drl, aina and qlearn everywhere, pid (no obstacle avoidance) on `low` only, where
+the formation's lane is free. Each run is one ``stack-fleet run FILE --policy P --out DIR --no-plots
+--no-progress`` process (its own router on a free port, the world, one agent per robot); ``--jobs``
+of them at a time. Writes OUT/heldout.{md,json} (per policy x density: success, collision runs and
+counts, timeouts, time to goal, formation error) and OUT/heldout_success.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from fleetrun import fleet  # noqa: E402  (bench/, beside this script)
+
+from stack.fleet.courses import DENSITIES, HELDOUT_SEEDS, CourseError, generate_course, write_course  # noqa: E402
+
+POLICIES = ("drl", "aina", "qlearn", "pid")
+COLUMNS = ("policy", "density", "runs", "success", "collision_runs", "robot_robot", "robot_obstacle", "timeouts",
+           "errors", "time_to_goal_s", "formation_error_rms_m", "min_robot_distance_m", "min_obstacle_distance_m")
+
+
+def outcome(rep: dict | None) -> str:
+    """success, collision (any), timeout (the leader never reached the goal), error (no report, or a process
+    crashed), or late (reached the goal after max_time)."""
+    if rep is None or rep.get("crashed"):
+        return "error"
+    if rep.get("success"):
+        return "success"
+    if sum(v or 0 for v in (rep.get("collisions") or {}).values()) > 0:
+        return "collision"
+    return "timeout" if rep.get("leader_time_to_goal_s") is None else "late"
+
+
+def run_one(task: dict, resume: bool) -> dict:
+    """One fleet run of a (course, policy) task; its row."""
+    out = Path(task["out"])
+    rep_path = out / "report.json"
+    if resume and rep_path.exists():
+        rep, err, wall = json.loads(rep_path.read_text()), "", 0.0
+    else:
+        rep, err, wall = fleet(Path(task["file"]), out, "--policy", task["policy"])
+    col = (rep or {}).get("collisions") or {}
+    row = {k: task[k] for k in ("policy", "density", "seed", "robots", "family")}
+    row |= {"outcome": outcome(rep), "error": err or None, "wall_s": round(wall, 1),
+            "robot_robot": col.get("robot_robot"), "robot_obstacle": col.get("robot_obstacle")}
+    for k in ("leader_time_to_goal_s", "formation_error_rms_m", "min_robot_distance_m", "min_obstacle_distance_m",
+              "sim_time_s", "end_reason"):
+        row[k] = (rep or {}).get(k)
+    return row
+
+
+def plan(courses: int, densities: list[str], policies: list[str], out: Path) -> list[dict]:
+    """Write the held-out courses under OUT/courses/<density>/ and list the runs."""
+    tasks = []
+    for d in densities:
+        for seed in HELDOUT_SEEDS[:courses]:
+            c = generate_course(seed, density=d, purpose="heldout")
+            path = write_course(c, out / "courses" / d / f"{c.scenario['name']}.yaml")
+            for p in policies:
+                if p in c.scenario["bench"]["policies"]:
+                    tasks.append({"policy": p, "density": d, "seed": seed, "robots": c.robots, "family": c.family,
+                                  "file": str(path), "out": str(out / "runs" / p / d / str(seed))})
+    return tasks
+
+
+def _mean(xs: list) -> float | None:
+    xs = [x for x in xs if x is not None]
+    return round(sum(xs) / len(xs), 3) if xs else None
+
+
+def aggregate(rows: list[dict], policies: list[str], densities: list[str]) -> list[dict]:
+    table = []
+    for p in policies:
+        for d in densities:
+            rs = [r for r in rows if r["policy"] == p and r["density"] == d]
+            if not rs:
+                continue
+            won = [r for r in rs if r["outcome"] == "success"]
+            table.append({
+                "policy": p, "density": d, "runs": len(rs), "success": round(len(won) / len(rs), 3),
+                "collision_runs": sum((r["robot_robot"] or 0) + (r["robot_obstacle"] or 0) > 0 for r in rs),
+                "robot_robot": sum(r["robot_robot"] or 0 for r in rs), "robot_obstacle": sum(r["robot_obstacle"] or 0 for r in rs),
+                "timeouts": sum(r["outcome"] == "timeout" for r in rs), "errors": sum(r["outcome"] == "error" for r in rs),
+                "time_to_goal_s": _mean([r["leader_time_to_goal_s"] for r in won]),
+                "formation_error_rms_m": _mean([r["formation_error_rms_m"] for r in rs]),
+                "min_robot_distance_m": min((r["min_robot_distance_m"] for r in rs if r["min_robot_distance_m"] is not None), default=None),
+                "min_obstacle_distance_m": min((r["min_obstacle_distance_m"] for r in rs if r["min_obstacle_distance_m"] is not None),
+                                               default=None),
+            })
+    return table
+
+
+def markdown(table: list[dict], seeds: range, command: str) -> str:
+    def cell(k, v):
+        if v is None:
+            return "-"
+        return f"{100 * v:.0f} %" if k == "success" else f"{v:.2f}" if isinstance(v, float) else str(v)
+
+    lines = [f"Held-out courses: seeds {seeds.start}..{seeds.stop - 1} at each density (`stack.fleet.courses`, "
+             "docs/courses.md); time to goal over successful runs; formation error RMS over all runs.", "",
+             "| " + " | ".join(COLUMNS) + " |", "|" + " --- |" * len(COLUMNS)]
+    lines += ["| " + " | ".join(cell(k, r[k]) for k in COLUMNS) + " |" for r in table]
+    return "\n".join(lines + ["", f"command: `{command}`", ""])
+
+
+def plot(table: list[dict], policies: list[str], densities: list[str], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    width = 0.8 / max(1, len(policies))
+    for k, p in enumerate(policies):
+        xs, ys = [], []
+        for i, d in enumerate(densities):
+            r = next((r for r in table if r["policy"] == p and r["density"] == d), None)
+            if r is not None:
+                xs.append(i + (k - (len(policies) - 1) / 2) * width)
+                ys.append(100 * r["success"])
+        ax.bar(xs, ys, width=width, label=p)
+    ax.set_xticks(range(len(densities)), densities)
+    ax.set_ylim(0, 105)
+    ax.set_ylabel("success [%]")
+    ax.set_xlabel("obstacle density")
+    ax.axhline(95, color="k", lw=0.8, ls="--")
+    ax.set_title("held-out courses: success per density")
+    ax.legend(fontsize=8, loc="lower left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _list(options):
+    def parse(text: str) -> list[str]:
+        items = [x for x in text.split(",") if x]
+        bad = [x for x in items if x not in options]
+        if bad or not items:
+            raise argparse.ArgumentTypeError(f"expected a comma-separated list of {', '.join(options)}, got {text!r}")
+        return items
+    return parse
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--courses", type=int, default=34, help="held-out courses per density (default 34: 102 in all)")
+    ap.add_argument("--densities", type=_list(tuple(DENSITIES)), default=list(DENSITIES))
+    ap.add_argument("--policies", type=_list(POLICIES), default=list(POLICIES))
+    ap.add_argument("--jobs", type=int, default=1, help="fleet runs at a time (each its own router, world and agents)")
+    ap.add_argument("--resume", action="store_true", help="keep the runs that already have a report.json")
+    ap.add_argument("--out", type=Path, default=Path("runs/heldout"))
+    a = ap.parse_args(argv)
+    if not 1 <= a.courses <= len(HELDOUT_SEEDS):
+        ap.error(f"--courses {a.courses}: expected 1..{len(HELDOUT_SEEDS)}")
+    if a.jobs < 1:
+        ap.error(f"--jobs {a.jobs}: expected at least 1")
+    from tqdm import tqdm
+
+    try:
+        tasks = plan(a.courses, a.densities, a.policies, a.out)
+    except CourseError as e:
+        print(f"heldout: {e}", file=sys.stderr)
+        return 2
+    t0, rows = time.perf_counter(), []
+    with ThreadPoolExecutor(max_workers=a.jobs) as pool, tqdm(total=len(tasks), unit="run", desc="held-out") as bar:
+        for fut in as_completed([pool.submit(run_one, t, a.resume) for t in tasks]):
+            rows.append(fut.result())
+            bar.set_postfix_str(f"{rows[-1]['policy']} {rows[-1]['density']} {rows[-1]['seed']}: {rows[-1]['outcome']}")
+            bar.update(1)
+    rows.sort(key=lambda r: (a.policies.index(r["policy"]), a.densities.index(r["density"]), r["seed"]))
+    table = aggregate(rows, a.policies, a.densities)
+    command = "python bench/heldout.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    seeds = HELDOUT_SEEDS[: a.courses]
+    md = markdown(table, seeds, command) + f"wall time {time.perf_counter() - t0:.0f} s, {a.jobs} job(s)\n"
+    a.out.mkdir(parents=True, exist_ok=True)
+    (a.out / "heldout.md").write_text(md)
+    (a.out / "heldout.json").write_text(json.dumps({"seeds": [seeds.start, seeds.stop - 1], "densities": a.densities,
+                                                    "policies": a.policies, "table": table, "runs": rows}, indent=1) + "\n")
+    plot(table, a.policies, a.densities, a.out / "heldout_success.png")
+    print(md)
+    print(f"table: {a.out / 'heldout.md'}, {a.out / 'heldout.json'}; plot: {a.out / 'heldout_success.png'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
