@@ -9,7 +9,7 @@ import re
 import sys
 from pathlib import Path
 
-from ..argtypes import fleet_name, nonnegative_float, positive_int
+from ..argtypes import fleet_name, nonnegative_float, nonnegative_int, positive_int
 from ..comm.session import ConfigFileError, EndpointError, SessionConfig, SessionError, check_endpoint, port_free, zenoh_config
 from ..policies import available as available_policies
 from ..scenario import FAULT_KINDS, ScenarioError, driver_names, load_scenario, parse_fault_at, policy_names, with_overrides
@@ -92,6 +92,7 @@ def parser() -> argparse.ArgumentParser:
                    help="serve the run live to Foxglove / Lichtblick (ws) on EP (default tcp/127.0.0.1:8765; "
                         "off loopback only with --allow-remote)")
     r.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    sub.add_parser("generate", add_help=False, help="write a generated, solvable obstacle course (docs/courses.md)")
     p = sub.add_parser("replay", help="animate a run from its run.mcap (replay.gif), without any app")
     p.add_argument("run_dir", type=Path, help="a run's folder (or its run.mcap)")
     p.add_argument("--out", default="replay.gif", help="GIF to write, relative to RUN_DIR (default replay.gif)")
@@ -107,6 +108,11 @@ def parser() -> argparse.ArgumentParser:
     b.add_argument("--seeds", type=positive_int, default=3, help="seeds per sweep value (0..N-1)")
     b.add_argument("--policies", type=lambda t: t.split(","), help="comma-separated policies (default: each scenario's)")
     b.add_argument("--duration", type=float, help="override every scenario's duration [s]")
+    b.add_argument("--random", type=positive_int, metavar="N", help="bench N generated courses instead (docs/courses.md)")
+    b.add_argument("--first-seed", type=nonnegative_int, default=0, help="--random: the first course seed (default 0)")
+    b.add_argument("--robots", type=positive_int, help="--random: robots per course (default: drawn, 3..8)")
+    b.add_argument("--formation", help="--random: formation family (default: drawn)")
+    b.add_argument("--density", help="--random: obstacle density low|medium|high (default: drawn)")
     return ap
 
 
@@ -179,6 +185,11 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
 
 
 def cli(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["generate"]:
+        from .courses import main as generate_main
+
+        return generate_main(argv[1:], prog="stack-fleet generate")
     a = parser().parse_args(argv)
     if a.cmd == "replay":
         from .replay import main as replay_main
@@ -190,6 +201,11 @@ def cli(argv: list[str] | None = None) -> int:
 
         sigterm_as_interrupt()
         try:
+            if a.random is not None:
+                from .bench import random_bench
+
+                return random_bench(a.random, a.out, first_seed=a.first_seed, robots=a.robots, formation=a.formation,
+                                    density=a.density, policies=a.policies, seed=a.seed)
             if a.sweep is not None:
                 from .bench import sweep
 

@@ -400,8 +400,8 @@ class Fleet:
             return
         from .replay import ReplayError, render_replay
 
-        try:
-            render_replay(self.out)
+        try:  # two frames per second of the run (at most 150): a short run's replay costs little
+            render_replay(self.out, max_frames=max(10, min(150, round(2 * self.mon.t))) if self.mon else 150)
         except ReplayError as e:
             log.warning("no replay: %s", e)
 
