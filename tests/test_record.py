@@ -194,7 +194,8 @@ def test_a_real_fleet_recorded_matches_its_report_and_truth_and_replays(tmp_path
     out = tmp_path / "out"
     ep, router = _start_router(tmp_path)
     rec = subprocess.Popen([PY, "-m", "stack.fleet.record", "--connect", ep, "--fleet", "rec1", "--scenario", str(path),
-                            "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=ENV)
+                            "--out", str(tmp_path / "rec")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                           cwd=ROOT, env=ENV)
     try:
         assert "recording fleet" in rec.stdout.readline()
         proc, rep = run_fleet(path, out, "--connect", ep, "--fleet", "rec1", "--no-plots")
@@ -203,7 +204,10 @@ def test_a_real_fleet_recorded_matches_its_report_and_truth_and_replays(tmp_path
     finally:
         _stop(rec)
         _stop(router)
-    summary, msgs, meta, attachments = read_mcap(out / "run.mcap")
+    # the fleet's own recording (every run writes one) and the one of the tool that listened from outside
+    _check_against_the_run(out, *read_mcap(out / "run.mcap")[:3])
+    assert not (out / "replay.gif").exists()  # --no-plots: no replay either
+    summary, msgs, meta, attachments = read_mcap(tmp_path / "rec" / "run.mcap")
     _check_against_the_run(out, summary, msgs, meta)
     assert parse_scenario(__import__("yaml").safe_load(attachments["scenario.yaml"])).ids == [0, 1, 2, 3]
 
@@ -362,3 +366,19 @@ def test_the_shipped_layout_shows_only_channels_a_recording_has():
 
 def _json_fields(name: str) -> set[str]:
     return set(json.loads(vm.JSON_SCHEMAS[name].data)["properties"])
+
+
+@pytest.mark.fleet
+def test_no_record_writes_no_recording_and_a_run_with_plots_writes_its_replay(tmp_path):
+    path = write_scenario(tmp_path / "d.yaml", scenario_dict(duration=3.0))
+    proc, rep = run_fleet(path, tmp_path / "a", "--no-record")
+    assert rep is not None, proc.stderr
+    assert not (tmp_path / "a" / "run.mcap").exists() and not (tmp_path / "a" / "replay.gif").exists()
+    assert (tmp_path / "a" / "trajectories.png").exists()
+    proc, rep = run_fleet(path, tmp_path / "b")
+    assert rep is not None, proc.stderr
+    from PIL import Image
+
+    with Image.open(tmp_path / "b" / "replay.gif") as im:  # two frames per second of the run, at least 10
+        assert im.n_frames == 10 and im.size == (640, 480)
+    assert "recording: " in proc.stdout and "replay: " in proc.stdout
