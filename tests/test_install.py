@@ -16,7 +16,7 @@ from importlib import metadata
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-EXTRAS_ONLY = ("pybullet", "torch", "matplotlib", "tqdm")
+EXTRAS_ONLY = ("pybullet", "torch", "matplotlib", "tqdm", "foxglove", "mcap", "PIL")
 """What a robot's own code never imports: the world, the network's training stack, plots, progress bars."""
 
 
@@ -53,7 +53,7 @@ def test_the_core_requirements_pull_no_simulator_and_no_torch():
     # filterpy (the estimator) declares matplotlib; it is the only way in, and nothing of ours imports it
     assert closure.get("matplotlib") in (None, "filterpy"), closure.get("matplotlib")
     extras = project["optional-dependencies"]
-    assert {_name(r) for r in extras["sim"]} >= {"pybullet", "matplotlib", "tqdm"}
+    assert {_name(r) for r in extras["sim"]} >= {"pybullet", "matplotlib", "tqdm", "foxglove-sdk", "mcap"}
     assert "torch" in {_name(r) for r in extras["drl"]}
 
 
