@@ -6,7 +6,8 @@
   its package ``__init__``, which would pull in its session and repository-fetching code), zenoh-ext's own
   serialiser, and the examples of rmw_zenoh's docs/design.md;
 - on loopback: a fake rmw_zenoh robot (built from zenoh-ros2-sdk's key and token builders, dropping samples
-  without a valid attachment as rmw_zenoh_cpp does) and our node: odometry in, commands out, the graph seen.
+  without a valid attachment as rmw_zenoh_cpp does) and our node: odometry in, commands out, the graph seen;
+- deploy/zenoh/robot-rmw-zenoh.json5 on a live router: what the agent may and may not touch.
 """
 
 from __future__ import annotations
@@ -18,13 +19,15 @@ import random
 import sys
 import time
 import types
+from pathlib import Path
 
 import pytest
 import zenoh
 import zenoh.ext as zext
 from rosbags.typesys import Stores, get_typestore
 
-from conftest import wait_for
+from conftest import ROOT, wait_for
+from stack.comm import tls
 from stack.comm.session import SessionConfig, free_tcp_endpoint, open_session
 from stack.drivers import rmw_zenoh as rz
 from stack.drivers.ros2cdr import LASER_SCAN, ODOMETRY, TWIST, TYPESTORE, CdrError, decode_odometry, decode_twist
@@ -446,3 +449,66 @@ def test_closing_the_node_leaves_the_graph(sessions):
     finally:
         node.close()
         graph.close()
+
+
+# --- deploy/zenoh/robot-rmw-zenoh.json5 on a live router ----------------------------------------
+def _robot_router_config(tmp_path, pki) -> Path:
+    """The deploy file with this test's certificates, and without the site router it would mesh with."""
+    text = (ROOT / "deploy" / "zenoh" / "robot-rmw-zenoh.json5").read_text()
+    text = text.replace("/etc/stack/certs", str(pki)).replace('connect: { endpoints: ["tls/192.0.2.1:7447"] }',
+                                                              "connect: { endpoints: [] }")
+    assert "endpoints: [] }" in text
+    path = tmp_path / "robot-rmw-zenoh.json5"
+    path.write_text(text)
+    return path
+
+
+def test_robot_router_config_exposes_only_the_agents_topics(tmp_path):
+    pki = tmp_path / "pki"
+    tls.make_ca(pki)
+    tls.issue(pki, "robot-router", "router.fleet-a.robot-2")
+    tls.issue(pki, "agent", "fleet-a.robot-2")
+    tls.issue(pki, "stranger", "fleet-a.robot-3")
+    conf = _robot_router_config(tmp_path, pki)
+    ros_ep, agent_ep = free_tcp_endpoint(), free_tcp_endpoint().replace("tcp/", "tls/")
+
+    def client(name: str) -> SessionConfig:
+        cfg = tls.write_config(pki / f"{name}.json5", tls.tls_block(pki / "ca.pem", pki / f"{name}.pem",
+                                                                      pki / f"{name}.key"))
+        return SessionConfig(connect=[agent_ep], config_file=str(cfg))
+
+    with open_session(SessionConfig(mode="router", listen=[ros_ep, agent_ep], config_file=str(conf))), \
+            open_session(SessionConfig(connect=[ros_ep])) as s_robot, \
+            open_session(client("agent")) as s_agent, open_session(client("stranger")) as s_stranger:
+        robot = FakeRmwRobot(s_robot, 0)
+        graph = rz.RosGraph(s_robot, 0)
+        node = rz.RmwZenohNode(s_agent, rz.NodeConfig(name="stack_agent", namespace="/robot2"))
+        stranger = rz.RmwZenohNode(s_stranger, rz.NodeConfig(name="stranger", namespace="/robot2"))
+        odoms, strangers_odoms, secret = [], [], []
+        try:
+            node.subscribe("platform/odom/filtered", ODOMETRY, lambda p, a: odoms.append(a))
+            node.subscribe("secret", rz.POSE_STAMPED, lambda p, a: secret.append(a))
+            stranger.subscribe("platform/odom/filtered", ODOMETRY, lambda p, a: strangers_odoms.append(a))
+            cmd, other = node.publisher("cmd_vel", TWIST), node.publisher("/robot2/cmd_vel_unsafe", TWIST)
+            assert wait_for(lambda: robot.publish_odom(1.0) or odoms, 5.0), "odometry did not reach the agent"
+            assert wait_for(lambda: cmd.put(encode_twist(0.1, 0.0)) and robot.accepted, 5.0)
+            assert wait_for(lambda: "/robot2/stack_agent" in graph.nodes(), 5.0), graph.nodes()
+            # what the agent may not touch: other ROS topics, either way; and a stranger gets nothing
+            unsafe = []
+            sub = s_robot.declare_subscriber(other.key, lambda s: unsafe.append(s))
+            secret_key = rz.topic_key(0, "/robot2/secret", rz.POSE_STAMPED)
+            for _ in range(20):
+                other.put(encode_twist(2.0, 0.0))
+                s_robot.put(secret_key, rz.encode_pose_stamped(0.0, 1.0, 2.0, 0.0),
+                            attachment=rz.Attachment(1, 1, robot.gid).encode())
+                robot.publish_odom(2.0)
+                time.sleep(0.01)
+            time.sleep(0.3)
+            sub.undeclare()
+            assert unsafe == [] and secret == [] and strangers_odoms == []
+            assert "/robot2/stranger" not in graph.nodes()
+        finally:
+            stranger.close()
+            node.close()
+            graph.close()
+            robot.close()
