@@ -227,6 +227,18 @@ def test_attachment_is_what_zenoh_ext_serialises():
     assert negative.encode() == zext.z_serialize((zext.Int64(-1), zext.Int64(-5), gid)).to_bytes()
 
 
+def test_older_keyed_attachments_are_what_zenoh_ext_serialises():
+    """rmw_zenoh Jazzy 0.2.0-0.2.3 / Humble 0.1.0-0.1.1: serialize("sequence_number"), int64, ... (string keys)."""
+    gid = bytes(range(16))
+    ref = zext.z_serialize(("sequence_number", zext.Int64(3), "source_timestamp", zext.Int64(99),
+                            "source_gid", gid)).to_bytes()
+    att = rz.Attachment(3, 99, gid)
+    assert att.encode(keyed=True) == ref and rz.Attachment.decode(ref) == att
+    for broken in (ref[:-1], ref.replace(b"source_gid", b"source_gix"), ref[:-17] + b"\x0f" + gid[:15]):
+        with pytest.raises(rz.RmwZenohError):
+            rz.Attachment.decode(broken)
+
+
 def test_attachment_agrees_with_zenoh_ros2_sdk():
     Att = sdk("attachment").Attachment
     gid = bytes(range(100, 116))

@@ -12,7 +12,9 @@ Checked against rmw_zenoh_cpp's source as released for Jazzy (0.2.10) and Humble
   sequence number (int64 LE), source timestamp (int64 LE, ns since the epoch), the publisher's GID as a
   sequence of 16 bytes (LEB128 length ``0x10``, then the bytes): 33 bytes. rmw_zenoh_cpp drops a sample
   without one ("Unable to obtain attachment"); sequence numbers start at 1 per publisher and a gap counts
-  as lost messages.
+  as lost messages. rmw_zenoh Jazzy 0.2.0-0.2.3 and Humble 0.1.0-0.1.1 wrote each value after its
+  name (``"sequence_number"``, ``"source_timestamp"``, ``"source_gid"``, zenoh-ext strings): both layouts
+  are read; ``Attachment.encode(keyed=True)`` writes the old one for robots on those releases.
 - **Graph** (``liveliness::Entity``): liveliness tokens
   ``@ros2_lv/<domain>/<zid>/<node id>/<entity id>/<NN|MP|MS|SS|SC>/<enclave>/<namespace>/<node name>``
   and, for endpoints, ``/<topic>/<DDS type>/<type hash>/<qos>``; names mangled (``/`` -> ``%``), the QoS in
@@ -314,6 +316,11 @@ _ATTACHMENT = struct.Struct("<qqB16s")
 _INT64 = (-2 ** 63, 2 ** 63)
 
 
+_KEYED = (b"\x0fsequence_number", b"\x10source_timestamp", b"\x0asource_gid")
+"""The key strings (LEB128 length + UTF-8) of the attachment of rmw_zenoh Jazzy 0.2.0-0.2.3 and Humble 0.1.0-0.1.1."""
+_KEYED_ATTACHMENT = struct.Struct(f"<{len(_KEYED[0])}sq{len(_KEYED[1])}sq{len(_KEYED[2])}sB16s")
+
+
 @dataclass(frozen=True)
 class Attachment:
     """What rmw_zenoh attaches to each sample: ``sequence_number``, ``source_timestamp`` [ns], ``gid`` (16 bytes)."""
@@ -322,24 +329,34 @@ class Attachment:
     source_timestamp: int
     gid: bytes
 
-    def encode(self) -> bytes:
-        """zenoh-ext serialisation of (int64, int64, 16 bytes): 8 + 8 + 1 (length 16, LEB128) + 16 bytes."""
+    def encode(self, keyed: bool = False) -> bytes:
+        """zenoh-ext serialisation of (int64, int64, 16 bytes): 8 + 8 + 1 (length 16, LEB128) + 16 bytes.
+
+        ``keyed``: the older layout (Jazzy 0.2.0-0.2.3, Humble 0.1.0-0.1.1), each value after its name.
+        """
         for name in ("sequence_number", "source_timestamp"):
             if not _INT64[0] <= getattr(self, name) < _INT64[1]:
                 raise ValueError(f"rmw_zenoh attachment: {name} {getattr(self, name)} is not an int64")
         if len(self.gid) != GID_SIZE:
             raise ValueError(f"rmw_zenoh attachment: a GID has {GID_SIZE} bytes, not {len(self.gid)}")
+        if keyed:
+            return _KEYED_ATTACHMENT.pack(_KEYED[0], self.sequence_number, _KEYED[1], self.source_timestamp,
+                                          _KEYED[2], GID_SIZE, bytes(self.gid))
         return _ATTACHMENT.pack(self.sequence_number, self.source_timestamp, GID_SIZE, bytes(self.gid))
 
     @classmethod
     def decode(cls, data: bytes | bytearray | memoryview) -> "Attachment":
-        """Attachment bytes -> Attachment; :class:`RmwZenohError` (``bad_attachment``) for anything else."""
+        """Attachment bytes (either layout) -> Attachment; :class:`RmwZenohError` (``bad_attachment``) otherwise."""
         data = bytes(data)
-        if len(data) < _ATTACHMENT.size or data[16] != GID_SIZE:
-            raise RmwZenohError("bad_attachment", f"attachment of {len(data)} bytes is not "
-                                                  f"(int64, int64, {GID_SIZE}-byte GID): {data[:40].hex()}")
-        seq, stamp, _, gid = _ATTACHMENT.unpack_from(data)
-        return cls(seq, stamp, gid)
+        if data.startswith(_KEYED[0]) and len(data) >= _KEYED_ATTACHMENT.size:
+            k0, seq, k1, stamp, k2, n, gid = _KEYED_ATTACHMENT.unpack_from(data)
+            if (k1, k2, n) == (_KEYED[1], _KEYED[2], GID_SIZE):
+                return cls(seq, stamp, gid)
+        elif len(data) >= _ATTACHMENT.size and data[16] == GID_SIZE:
+            seq, stamp, _, gid = _ATTACHMENT.unpack_from(data)
+            return cls(seq, stamp, gid)
+        raise RmwZenohError("bad_attachment", f"attachment of {len(data)} bytes is not "
+                                              f"(int64, int64, {GID_SIZE}-byte GID): {data[:40].hex()}")
 
 
 def gid_of(token: str) -> bytes:
