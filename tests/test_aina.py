@@ -170,6 +170,7 @@ def test_aina_settings_are_checked():
     assert parse_scenario(d).robot(0).config_for("aina").n_ab == 72
 
 
+@pytest.mark.fleet
 # --- in the fleet -----------------------------------------------------------------------------
 
 def test_deng_switching_followers_take_the_line_after_the_switch(tmp_path):
@@ -185,6 +186,7 @@ def test_deng_switching_followers_take_the_line_after_the_switch(tmp_path):
     assert (tmp_path / "sw" / "errors.png").stat().st_size > 10_000
 
 
+@pytest.mark.fleet
 def test_deng_obstacles_no_collisions_and_the_formation_recovers(tmp_path):
     proc, rep = run_fleet(SCENARIOS / "deng-obstacles.yaml", tmp_path / "ob", "--no-plots")
     assert rep is not None and proc.returncode == 0, (proc.stdout, proc.stderr)
@@ -193,6 +195,7 @@ def test_deng_obstacles_no_collisions_and_the_formation_recovers(tmp_path):
     assert rep["formation_recovery_s"] <= 10.0
 
 
+@pytest.mark.fleet
 def test_aina_takes_the_obstacle_field_with_noisy_odometry_and_fixes(tmp_path):
     """Issues 4 and 6: four-robot-obstacles with odometry noise 0.05/0.05 and 1 Hz fixes of 0.3 m:
     success, zero collisions, estimator RMSE < 0.2 m. (The 0.1 m recovery bound is checked on

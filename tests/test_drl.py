@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 import pytest
+import torch  # the test install has it (a missing one is a failure, not a skip)
 
-torch = pytest.importorskip("torch")
 torch.set_num_threads(1)  # as in every agent process; more threads only contend on a loaded machine
 
 from conftest import scenario_dict  # noqa: E402
@@ -103,7 +103,6 @@ def test_numpy_lidar_equals_pybullet():
     and Bullet's float32 ray tests differ from exact geometry there by up to a few cm. Such beams
     are found by casting against every body grown and shrunk by 5 mm (the two disagree by > 10 cm) and
     are not compared; they must stay rare."""
-    pytest.importorskip("pybullet")
     from stack.scenario import parse_scenario
     from stack.sim_bridge.geometry import distance_to_obstacles
     from stack.sim_bridge.world import World

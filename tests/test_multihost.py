@@ -3,7 +3,7 @@
 Agents reach each other only through the routers (no route between hosts, no forwarding);
 ``stack-fleet run --connect ... --external-agents`` runs the world and waits for agents started
 elsewhere. Lock-step is deterministic, so the multi-host report must match the single-host
-one. Skipped, with the reason, only where namespaces cannot be made.
+one. Where namespaces cannot be made these fail with the reason (see ``netns.require_namespaces``).
 """
 
 from __future__ import annotations
@@ -16,10 +16,9 @@ from pathlib import Path
 import pytest
 
 from conftest import scenario_dict, write_scenario
-from netns import Topology, agent_argv, fleet_argv, namespaces_unavailable, reference_report, report_differences, tag
+from netns import Topology, agent_argv, fleet_argv, reference_report, report_differences, require_namespaces, tag
 
-WHY = namespaces_unavailable()
-pytestmark = pytest.mark.skipif(WHY is not None, reason=WHY or "")
+pytestmark = pytest.mark.fleet
 
 DURATION = 6.0
 
@@ -38,6 +37,7 @@ def scenario(tmp_path: Path) -> tuple[Path, dict]:
 
 @pytest.fixture
 def topology(request):
+    require_namespaces()
     topo = Topology(tag())
     request.addfinalizer(topo.close)
     return topo

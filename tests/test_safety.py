@@ -17,6 +17,8 @@ from stack.comm import Keys, decode
 from stack.comm.messages import Clock, CmdVel
 from stack.comm.session import SessionConfig, free_tcp_endpoint, open_session
 
+pytestmark = pytest.mark.fleet  # router + world + four agent processes
+
 
 def _spawn(*args: str, log) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", *args], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,

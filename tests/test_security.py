@@ -3,8 +3,8 @@
 A site router (``stack-router`` with a ``deploy/``-shaped config: mTLS + deny-by-default ACL)
 admits only sessions whose certificate its CA signed, and lets a fleet's members (their
 certificates' common names) use only ``stack/<fleet>/**``. The loopback tests need no
-namespaces; the fleet run under TLS is split over namespaces (skipped only where they cannot
-be made).
+namespaces; the fleet run under TLS is split over namespaces (it fails, with the reason, where they
+cannot be made: see ``netns.require_namespaces``).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import pytest
 import zenoh
 
 from conftest import ROOT, run_cli, scenario_dict, write_scenario
-from netns import Topology, agent_argv, fleet_argv, namespaces_unavailable, reference_report, report_differences, tag
+from netns import Topology, agent_argv, fleet_argv, reference_report, report_differences, require_namespaces, tag
 from stack.comm import tls
 from stack.comm.session import ConfigFileError, EndpointError, SessionConfig, SessionError, open_session, zenoh_config
 from stack.scenario import load_scenario
@@ -211,6 +211,7 @@ def test_deploy_files_are_valid(tmp_path: Path, pki: Path):
     every robot config is a scenario the loader accepts."""
     confs = sorted((ROOT / "deploy").rglob("*.json5"))
     assert len(confs) >= 3, confs
+    routers = 0
     for path in confs:
         conf = zenoh.Config.from_file(str(path))
         assert json.loads(conf.get_json("scouting/multicast/enabled")) is False, path
@@ -218,9 +219,11 @@ def test_deploy_files_are_valid(tmp_path: Path, pki: Path):
         endpoints = json.loads(conf.get_json("connect/endpoints")) + json.loads(conf.get_json("listen/endpoints"))
         assert endpoints and all("/" in e and ":" in e for e in endpoints), (path, endpoints)
         if mode == "router":
+            routers += 1
             assert json.loads(conf.get_json("access_control/enabled")) is True, path
             assert json.loads(conf.get_json("access_control/default_permission")) == "deny", path
         assert json.loads(conf.get_json("transport/link/tls/enable_mtls")) is True, path
+    assert routers >= 1, confs  # the routers' access control above was checked on at least one
     robots = sorted((ROOT / "deploy" / "robots").glob("*.yaml"))
     assert {r.name for r in robots} >= {"jackal-can.yaml", "rover-mavlink.yaml"}
     drivers = {}
@@ -266,10 +269,9 @@ with open_session(SessionConfig(connect=[sys.argv[1]], config_file=sys.argv[2], 
 """
 
 
+@pytest.mark.fleet
 def test_fleet_runs_under_mtls_and_access_control(tmp_path: Path, request):
-    why = namespaces_unavailable()
-    if why:
-        pytest.skip(why)
+    require_namespaces()
     d = scenario_dict(duration=6.0)
     d["success"] = dict(d["success"], max_time=6.0)
     scenario = write_scenario(tmp_path / "diamond.yaml", d)

@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -312,40 +313,52 @@ def plan(occupancy: np.ndarray, start: Cell, goal: Cell, config: QLearningConfig
     c = (config or QLearningConfig()).resolved()
     occupancy = np.asarray(occupancy, dtype=bool)
     check_cells(occupancy, start=start, goal=goal)
-    rng = np.random.default_rng(c.seed)
-    u = _uniforms(rng).__next__
-
-    warm = (warm_start is not None and warm_start.occupancy.shape == occupancy.shape
-            and tuple(warm_start.goal) == tuple(goal))
-    keep = None
-    if warm:
-        changed = warm_start.occupancy != occupancy
-        near = changed.copy()  # 3 x 3 dilation of the changed cells
-        for dx in (-1, 0, 1):
-            for dy in (-1, 0, 1):
-                near |= np.roll(np.roll(np.pad(changed, 1), dx, 0), dy, 1)[1:-1, 1:-1]
-        keep = ~near.ravel() & ~np.isnan(warm_start.Q).any(axis=1)
-        v0 = warm_start.virtual & ~near
-        virtual = v0 if virtual is None else (v0 | virtual)
+    u = _uniforms(np.random.default_rng(c.seed)).__next__
+    keep, virtual = _warm_reuse(warm_start, occupancy, goal, virtual)
     world = GridWorld(occupancy, start, goal, c.corner_cutting, virtual)
-    nS = world.n_states
-    nxt, ok, blocked = world.nxt, world.ok, world.blocked
-    fill_guard = c.fill_guard
-    s0, sg = world.s_start, world.s_goal
-    r_goal, r_step, r_hit = REWARDS[c.reward]
-    alpha, gamma = c.alpha, c.gamma
-    terminal_hit = c.collision == "terminal"
-    max_steps = c.max_steps or nS
-    filling = c.filling
+    max_steps = c.max_steps or world.n_states
+    Q, row_of = _initial_table(world, c, warm_start, keep)
+    tr = _train(world, c, row_of, u, max_steps, t0)
+    gpath, greached = _greedy_rollout(world, Q, max_steps)
+    cell = world.cell
+    return QLearningResult(
+        variant=c.variant, seed=c.seed, converged=tr.converged_at is not None, convergence_round=tr.converged_at,
+        convergence_time_s=tr.conv_time, rounds=tr.rounds, time_s=time.perf_counter() - t0,
+        last_round_path=[cell(s_) for s_ in tr.path], reached=tr.reached,
+        greedy_path=[cell(s_) for s_ in gpath], greedy_reached=greached,
+        steps_per_round=tr.steps, reward_per_round=tr.rewards, epsilon_per_round=tr.epsilons,
+        occupancy=occupancy.copy(), virtual=world.virtual.copy(), Q=_q_array(Q),
+        start=(int(start[0]), int(start[1])), goal=(int(goal[0]), int(goal[1])), warm_started=keep is not None,
+    )
 
-    # Q-table: a list of rows (plain floats, fast in the loop); None = not initialised yet
+
+def _warm_reuse(warm_start: QLearningResult | None, occupancy: np.ndarray, goal: Cell,
+                virtual: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Replanning on a changed grid: the states whose Q rows a warm start keeps (None = cold start) and
+    the virtual obstacles to start from. Rows and virtual obstacles within one cell of a change are dropped."""
+    if warm_start is None or warm_start.occupancy.shape != occupancy.shape or tuple(warm_start.goal) != tuple(goal):
+        return None, virtual
+    changed = warm_start.occupancy != occupancy
+    near = changed.copy()  # 3 x 3 dilation of the changed cells
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            near |= np.roll(np.roll(np.pad(changed, 1), dx, 0), dy, 1)[1:-1, 1:-1]
+    keep = ~near.ravel() & ~np.isnan(warm_start.Q).any(axis=1)
+    v0 = warm_start.virtual & ~near
+    return keep, (v0 if virtual is None else (v0 | virtual))
+
+
+def _initial_table(world: GridWorld, c: QLearningConfig, warm_start: QLearningResult | None,
+                   keep: np.ndarray | None) -> tuple[list, Callable[[int], list[float]]]:
+    """The Q-table as a list of rows (plain floats, fast in the loop; None = not initialised yet) and
+    ``row_of(s)``, which initialises a row by eq. (9) the first time the robot stands on s (Q-L3..Q-L5)."""
     if c.gpf:
         init_row = GPFInit(world, c)
-        Q: list = [None] * nS
+        Q: list = [None] * world.n_states
     else:
         init_row = None
-        Q = [[0.0] * 8 for _ in range(nS)]  # Algorithm 1: Q(s, a) = 0
-    if warm:
+        Q = [[0.0] * 8 for _ in range(world.n_states)]  # Algorithm 1: Q(s, a) = 0
+    if keep is not None:
         Qw = warm_start.Q
         for s in np.flatnonzero(keep).tolist():
             Q[s] = Qw[s].tolist()
@@ -356,93 +369,125 @@ def plan(occupancy: np.ndarray, start: Cell, goal: Cell, config: QLearningConfig
             r = Q[s] = init_row(s)
         return r
 
-    steps_hist: list[int] = []
-    reward_hist: list[float] = []
-    eps_hist: list[float] = []
-    reached_hist: list[bool] = []
+    return Q, row_of
+
+
+@dataclass
+class _Training:
+    """What the rounds of :func:`_train` recorded."""
+
+    steps: list[int] = field(default_factory=list)
+    rewards: list[float] = field(default_factory=list)
+    epsilons: list[float] = field(default_factory=list)
+    reached_hist: list[bool] = field(default_factory=list)
+    converged_at: int | None = None
+    conv_time: float | None = None
+    rounds: int = 0
+    path: list[int] = field(default_factory=list)
+    """States of the last round."""
+    reached: bool = False
+    """Whether the last round reached the goal."""
+
+
+def _train(world: GridWorld, c: QLearningConfig, row_of, u, max_steps: int, t0: float) -> _Training:
+    """Algorithms 1-2: rounds from the start until convergence (reading 5) or ``max_rounds``."""
+    tr = _Training(path=[world.s_start])
     eps = c.epsilon
-    converged_at = None
-    conv_time = None
-    path: list[int] = [s0]
-    reached = False
     W, lim = c.conv_rounds, c.conv_std ** 2
-    rounds = 0
     for ep in range(c.max_rounds):
-        rounds = ep + 1
-        s = s0
-        row = row_of(s)
+        tr.rounds = ep + 1
+        row = row_of(world.s_start)
         if c.sa and ep % c.n == 0:  # Algorithm 2: "If episode % n == 0 Then ... update epsilon"
-            T = c.T0 if ep == 0 else sa_temperature(steps_hist[-c.n:], c.i, c.k)  # eq. (10)
+            T = c.T0 if ep == 0 else sa_temperature(tr.steps[-c.n:], c.i, c.k)  # eq. (10)
             a_rand = int(u() * 8)
             eps = sa_epsilon(row[a_rand], max(row), c.q, T)  # eq. (11)
-        path = [s]
-        G = 0.0
-        reached = False
-        t = 0
-        while t < max_steps:
-            # Algorithm 2 step (3): fill the current cell if every position nearer the goal is infeasible
-            if filling:
-                cl = world.closer[s]
-                if cl:
-                    nx_s = nxt[s]
-                    for a in cl:
-                        t_ = nx_s[a]
-                        if t_ >= 0 and not blocked[t_]:
-                            break
-                    else:
-                        world.fill(s)
-                        if fill_guard and not world.connected():
-                            world.unfill(s)
-            # eq. (2): epsilon-greedy (delta < epsilon: random action), ties broken at random
-            if u() < eps:
-                a = int(u() * 8)
-            else:
-                m = max(row)
-                if row.count(m) == 1:
-                    a = row.index(m)
-                else:
-                    cand = [j for j in range(8) if row[j] == m]
-                    a = cand[int(u() * len(cand))]
-            t += 1
-            if ok[s][a]:
-                s2 = nxt[s][a]
-                if s2 == sg:
-                    row[a] += alpha * (r_goal - row[a])  # eq. (1) at the target: no max_a Q(s_t+1, a) term
-                    G += r_goal
-                    path.append(s2)
-                    reached = True
-                    break
-                r = r_step
-            else:
-                r = r_hit
-                if terminal_hit:
-                    row[a] += alpha * (r_hit - row[a])  # eq. (1), the round ends here
-                    G += r_hit
-                    break
-                s2 = s
-            row2 = row_of(s2)
-            row[a] += alpha * (r + gamma * max(row2) - row[a])  # eq. (1)
-            G += r
-            s, row = s2, row2
-            path.append(s)
-        steps_hist.append(t)
-        reward_hist.append(G)
-        eps_hist.append(eps)
-        reached_hist.append(reached)
-        if converged_at is None and ep + 1 >= W and all(reached_hist[-W:]):
-            last = steps_hist[-W:]
+        t, G, tr.reached, tr.path = _round(world, c, row_of, eps, u, max_steps)
+        tr.steps.append(t)
+        tr.rewards.append(G)
+        tr.epsilons.append(eps)
+        tr.reached_hist.append(tr.reached)
+        if tr.converged_at is None and ep + 1 >= W and all(tr.reached_hist[-W:]):
+            last = tr.steps[-W:]
             mu = sum(last) / W
             if sum((x - mu) ** 2 for x in last) / (W - 1) < lim:  # section 5.1: std of 10 rounds < 5
-                converged_at = ep + 1
-                conv_time = time.perf_counter() - t0
+                tr.converged_at = ep + 1
+                tr.conv_time = time.perf_counter() - t0
                 if c.stop_at_convergence:
                     break
+    return tr
 
-    # epsilon = 0 rollout of the final table on the final grid (reading 7)
-    gpath = [s0]
-    seen = {s0}
-    s = s0
-    greached = False
+
+def _round(world: GridWorld, c: QLearningConfig, row_of, eps: float, u, max_steps: int
+           ) -> tuple[int, float, bool, list[int]]:
+    """One round (episode) from the start: steps taken, return G, whether it reached the goal, its states."""
+    nxt, ok = world.nxt, world.ok
+    sg = world.s_goal
+    r_goal, r_step, r_hit = REWARDS[c.reward]
+    alpha, gamma = c.alpha, c.gamma
+    terminal_hit = c.collision == "terminal"
+    filling, fill_guard = c.filling, c.fill_guard
+    s = world.s_start
+    row = row_of(s)
+    path = [s]
+    G = 0.0
+    t = 0
+    while t < max_steps:
+        if filling:  # Algorithm 2 step (3)
+            _fill_if_trapped(world, s, fill_guard)
+        # eq. (2): epsilon-greedy (delta < epsilon: random action), ties broken at random
+        if u() < eps:
+            a = int(u() * 8)
+        else:
+            m = max(row)
+            if row.count(m) == 1:
+                a = row.index(m)
+            else:
+                cand = [j for j in range(8) if row[j] == m]
+                a = cand[int(u() * len(cand))]
+        t += 1
+        if ok[s][a]:
+            s2 = nxt[s][a]
+            if s2 == sg:
+                row[a] += alpha * (r_goal - row[a])  # eq. (1) at the target: no max_a Q(s_t+1, a) term
+                path.append(s2)
+                return t, G + r_goal, True, path
+            r = r_step
+        else:
+            r = r_hit
+            if terminal_hit:
+                row[a] += alpha * (r_hit - row[a])  # eq. (1), the round ends here
+                return t, G + r_hit, False, path
+            s2 = s
+        row2 = row_of(s2)
+        row[a] += alpha * (r + gamma * max(row2) - row[a])  # eq. (1)
+        G += r
+        s, row = s2, row2
+        path.append(s)
+    return t, G, False, path
+
+
+def _fill_if_trapped(world: GridWorld, s: int, fill_guard: bool) -> None:
+    """Algorithm 2 step (3): fill the current cell if every position nearer the goal is infeasible
+    (with ``fill_guard``: unless that cuts the start off from the goal)."""
+    cl = world.closer[s]
+    if not cl:
+        return
+    nx_s, blocked = world.nxt[s], world.blocked
+    for a in cl:
+        t_ = nx_s[a]
+        if t_ >= 0 and not blocked[t_]:
+            return
+    world.fill(s)
+    if fill_guard and not world.connected():
+        world.unfill(s)
+
+
+def _greedy_rollout(world: GridWorld, Q: list, max_steps: int) -> tuple[list[int], bool]:
+    """epsilon = 0 rollout of the final table on the final grid (reading 7): its states, whether it reached the goal."""
+    nxt, ok, sg = world.nxt, world.ok, world.s_goal
+    s = world.s_start
+    gpath = [s]
+    seen = {s}
     for _ in range(max_steps):
         r = Q[s]
         if r is None:
@@ -452,30 +497,23 @@ def plan(occupancy: np.ndarray, start: Cell, goal: Cell, config: QLearningConfig
         m = max(best)
         if m == -math.inf:
             break
-        a = best.index(m)
-        s = nxt[s][a]
+        s = nxt[s][best.index(m)]
         gpath.append(s)
         if s == sg:
-            greached = True
-            break
+            return gpath, True
         if s in seen:
             break
         seen.add(s)
+    return gpath, False
 
-    Qa = np.full((nS, 8), np.nan)
-    for s_, r_ in enumerate(Q):
-        if r_ is not None:
-            Qa[s_] = r_
-    cell = world.cell
-    return QLearningResult(
-        variant=c.variant, seed=c.seed, converged=converged_at is not None, convergence_round=converged_at,
-        convergence_time_s=conv_time, rounds=rounds, time_s=time.perf_counter() - t0,
-        last_round_path=[cell(s_) for s_ in path], reached=reached,
-        greedy_path=[cell(s_) for s_ in gpath], greedy_reached=greached,
-        steps_per_round=steps_hist, reward_per_round=reward_hist, epsilon_per_round=eps_hist,
-        occupancy=occupancy.copy(), virtual=world.virtual.copy(), Q=Qa,
-        start=(int(start[0]), int(start[1])), goal=(int(goal[0]), int(goal[1])), warm_started=warm,
-    )
+
+def _q_array(Q: list) -> np.ndarray:
+    """The Q-table as an array (n_states, 8); rows never initialised are NaN."""
+    Qa = np.full((len(Q), 8), np.nan)
+    for s, r in enumerate(Q):
+        if r is not None:
+            Qa[s] = r
+    return Qa
 
 
 __all__ = ["VARIANTS", "FEATURES", "REWARDS", "QLearningConfig", "QLearningResult", "plan", "plan_map",
