@@ -215,6 +215,7 @@ class JackalDevice(HostedDevice):
         if pub is not None and not self.odom_stopped:
             pub.put(encode_odometry(stamp, body.x, body.y, body.yaw, body.v, body.w))
             self._count("odom")
+            self.odom_sent += 1
 
     # --- helpers ------------------------------------------------------------------------
     def _count(self, key: str) -> None:
