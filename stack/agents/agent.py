@@ -212,9 +212,8 @@ class Agent:
         if m is None:
             return
         with self._cv:
-            if self.cfg.lockstep:
+            if self.cfg.lockstep:  # sim_now (the driver's clock) moves when the step is taken, not here
                 self.barrier.on_clock(m)
-                self.sim_now = max(self.sim_now, m.t)
             else:
                 self._in.world_clock = (m.t, self._now())
                 for rid in m.dead:
@@ -320,6 +319,8 @@ class Agent:
             k = clock.step
             if not self.barrier.wait_neighbours(clock, self.step < 0, self.cfg.stop):
                 return None
+            # the driver's clock moves to step k only now that all of step k's device traffic is in (heartbeats go
+            # before the odometry on each wire): whatever the wall clock did, the driver stamped it t_{k-1}
             self.sim_now = max(self.sim_now, clock.t)
             odometry = self._take_odometry(k, clock.t, n_device)
             fixes = tuple((f.x, f.y, f.std) for f in self._in.fixes if f.step <= k)
@@ -377,9 +378,9 @@ class Agent:
             states, self._in.states = tuple(self._in.states), []
             wc = self._in.world_clock
             t_run = wc[0] + (now - wc[1]) if wc is not None else now
-            dead = frozenset(self._in.dead)
+            dead, scan_t = frozenset(self._in.dead), self._in.scan_t
         return StepInputs(step=self.step + 1, t=now, t_run=t_run, now=time.time(), odometry=odometry, scan=scan,
-                          scan_t=self._in.scan_t, fixes=fixes, states=states, dead=dead)
+                          scan_t=scan_t, fixes=fixes, states=states, dead=dead)
 
     def _current_scan(self, now: float) -> Scan | None:
         """The newest scan: the world's, or the robot's own where its driver reads one (a Jackal's ``LaserScan``:
