@@ -139,6 +139,7 @@ class Clock(_Msg):
     answered: list[int] = []
     lockstep: bool = True
     dead: list[int] = []  # robots whose agents are gone (killed or left) as of this step
+    device_odom: dict[int, int] = {}  # robot id -> odometry samples its hosted device has sent since lock-step began
 
 
 class FaultRequest(_Msg):
@@ -205,7 +206,10 @@ class Diag(_Msg):
     led_since: float | None = None  # sim time this agent took over as leader (failover)
     rejected_states: int = 0  # neighbours' states that claimed an impossible jump
     neighbour_waits_timed_out: int = 0  # lock-step steps that went on without an awaited neighbour state
-    device_odom_late: int = 0  # lock-step steps that went on without a new odometry sample from the device
+    device_odom_late: int = 0  # lock-step steps that went on without all of the device's odometry samples of the step
+    device_odom_strays: int = 0  # lock-step: device odometry samples that belonged to no step (dropped)
+    odom_stale: int = 0  # control steps commanded zero because the odometry was stale
+    lidar_stale: int = 0  # control steps commanded zero because the lidar was stale (policies that need it)
     scans_from_driver: int = 0  # real time: scans the robot's own driver read (a Jackal's LaserScan)
     shield_masked: int | None = None  # --policy drl: steps at which the action shield overruled the network
     links: dict[int, dict[str, int]] | None = None  # sender id -> {delivered, dropped_range, dropped_loss}, cumulative

@@ -21,7 +21,10 @@ Lifecycle, driven by the world (``WorldServer``):
    the device's actuators to the end of the step and returns the body speeds (v, w) the
    world moves the body with over the step; the world steps; ``report(t_k + dt, body)``
    gives the device the body's pose and speeds at the end of the step and sends whatever
-   telemetry is due by then (before the world publishes step k+1's sensors).
+   telemetry is due by then (before the world publishes step k+1's sensors). ``odom_sent`` counts the
+   odometry samples the device has sent, as its driver assembles them (one per pair of encoder frames, per
+   position + attitude pair, per ``Odometry`` message): the world's clock tells each agent how many there
+   were, so an agent knows when it has step k's (``stack.comm.lockstep``; device wires carry no step).
    In real time the device's own thread keeps handling traffic as it arrives, and these
    calls only sync the body.
 4. ``close()``: the device is gone (the endpoint disappears).
@@ -134,6 +137,7 @@ class HostedDevice(ABC):
         for a device that scans at its own times; None: the device reuses the world's newest scan."""
         self._wall0 = time.monotonic()
         self._offset: float | None = None  # device time = offset + sim time, once in lock-step
+        self.odom_sent = 0  # odometry samples sent, as the driver assembles them (the lock-step clock counts them)
 
     def _device_config(self, settings) -> DeviceConfig:
         if isinstance(settings, self.config_class):

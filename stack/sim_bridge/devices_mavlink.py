@@ -58,6 +58,7 @@ class RoverDevice(HostedDevice):
         self.config = self.driver_config(MavlinkConfig)
         self.rng = np.random.default_rng([self.seed, robot.id, 7])
         self.rover: SimRover | None = None
+        self._fresh = {"local_position_ned": False, "attitude": False}  # as the driver pairs them into a sample
 
     def start(self) -> None:
         cfg, b, dev = self.config, self.robot.base, self.device_config
@@ -88,7 +89,13 @@ class RoverDevice(HostedDevice):
         nx, ny = self.rng.normal(0.0, self.config.position_std, 2)
         self.rover.set_pose(body.x + nx, body.y + ny, body.yaw, body.v, body.w)
         if self.in_lockstep:
+            before = {k: self.rover.counters.get(k, 0) for k in self._fresh}
             self.rover.emit(self.device_time(t_sim_next))
+            for k in self._fresh:  # each stream goes out at most once per emit
+                self._fresh[k] = self._fresh[k] or self.rover.counters.get(k, 0) > before[k]
+            if all(self._fresh.values()):
+                self.odom_sent += 1
+                self._fresh = dict.fromkeys(self._fresh, False)
 
     def fail(self) -> str:
         self.rover.force_mode("HOLD")

@@ -416,6 +416,7 @@ class JackalDevice(HostedDevice):
         if pub is not None and not self.odom_stopped:
             pub.put(encode_odometry(stamp, x, y, yaw, v, w))
             self._count("odom")
+            self.odom_sent += 1
 
     # --- helpers ------------------------------------------------------------------------
     def _count(self, key: str) -> None:

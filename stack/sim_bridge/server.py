@@ -30,6 +30,7 @@ import numpy as np
 import zenoh
 
 from ..comm import Keys, MessageError, decode, encode
+from ..comm.lockstep import CommandBarrier
 from ..comm.messages import Answer, Clock, CmdVel, FaultAck, FaultRequest, Fix, Imu, Odom, Scan, Truth, WorldStatus
 from ..scenario import Scenario, fix_due, slot_position
 from .devices import Body, HostedDevice, make_device
@@ -90,10 +91,9 @@ class WorldServer:
         self._cv = threading.Condition()
         self.alive: set[int] = set()
         self.dead: set[int] = set()  # agents gone (killed, crashed or left); announced in every Clock
-        self.unresponsive: set[int] = set()
+        self.barrier = CommandBarrier(self._cv, lambda: self.alive, cfg.lockstep_timeout_s)
         self.acks: dict[tuple[int, str], list[int]] = {}
         self._pending_faults = sorted(cfg.faults, key=lambda f: f[2])
-        self.cmds: dict[int, dict[int, tuple[float, float]]] = {}  # step -> id -> (v, w)
         self.last_cmd: dict[int, tuple[float, float, float, int]] = {}  # id -> (v, w, sim t received, step)
         self.malformed = 0
         self.events: list[dict] = []
@@ -101,6 +101,7 @@ class WorldServer:
         self.k = 0
         self.late_steps = 0
         self.devices: dict[int, HostedDevice] = {}  # robots whose driver talks to a simulated device
+        self._odom_base: dict[int, int] = {}  # device -> odom_sent when lock-step began
 
     # --- callbacks -------------------------------------------------------------------
     def _decode_answer(self, sample: zenoh.Sample, kind, hosted: bool):
@@ -131,13 +132,7 @@ class WorldServer:
 
     def _answered(self, rid: int, step: int, cmd: tuple[float, float] | None) -> None:
         """Robot ``rid`` has commanded ``step`` (caller holds the lock)."""
-        if step < 0:
-            return
-        got = self.cmds.setdefault(step, {})
-        got[rid] = cmd
-        self.unresponsive.discard(rid)
-        if step == self.k and len(got) >= len(self.alive - self.unresponsive):
-            self._cv.notify_all()  # wake the loop once the step may be complete
+        self.barrier.answered(rid, step, cmd)
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         rid = Keys.id_of(str(sample.key_expr))
@@ -193,7 +188,7 @@ class WorldServer:
                 elif kind == "restart":
                     while not set(done) <= self.alive and time.monotonic() < deadline and not self.cfg.stop.is_set():
                         self._cv.wait(0.05)
-                    self.unresponsive -= set(done)
+                    self.barrier.responsive(done)
 
     # --- run ---------------------------------------------------------------------------
     def run(self) -> dict:
@@ -263,108 +258,132 @@ class WorldServer:
                 self._cv.wait(0.1)
 
     def _loop(self, pubs, clock_pub, truth_pub, fault_pub) -> dict:
-        sc, w, dt = self.sc, self.world, self.sc.dt
-        duration = self.cfg.duration or sc.duration
-        n_steps = int(round(duration / dt))
+        n_steps = int(round((self.cfg.duration or self.sc.duration) / self.sc.dt))
         log_rows: dict[str, list] = {k: [] for k in ("t", "x", "y", "yaw", "v", "w", "alive", "cmd_v", "cmd_w")}
         wall0 = time.monotonic()
         answered: list[int] = []
         arrived_at: float | None = None
-        end_reason = "duration"
-        for rid, dev in self.devices.items():
-            if not self.cfg.realtime:
-                dev.lockstep(0.0)  # from here the device lives on sim time
-            dev.report(0.0, self._body(rid))
+        self._begin_devices()
         while True:
-            self.t = self.k * dt
-            stamp = self.t if not self.cfg.realtime else time.time()
-            if self._pending_faults:
-                self._inject_faults(fault_pub)
-            for rid, at in self.cfg.device_faults:
-                if at <= self.t + 1e-9 and not any(e.get("event") == "device fault" and e["robot"] == rid for e in self.events):
-                    what = self.devices[rid].fail()
-                    log.warning("world: t=%.1f s: robot %d's device fails: %s", self.t, rid, what)
-                    self.events.append({"t": self.t, "robot": rid, "event": "device fault", "what": what})
-
+            self.t = self.k * self.sc.dt
+            self._faults_due(fault_pub)
             with self._cv:
-                alive_now = set(self.alive)
-                dead_now = sorted(self.dead)
-            log_rows["t"].append(self.t)
-            for key, arr in (("x", w.x), ("y", w.y), ("yaw", w.yaw), ("v", w.v), ("w", w.w)):
-                log_rows[key].append(arr.copy())
-            log_rows["alive"].append(np.array([rid in alive_now for rid in self.ids]))
-
-            # end of the run?
-            done, arrived_at = self._task_done(arrived_at)
-            if done:
-                end_reason = "task complete"
+                alive_now, dead_now = set(self.alive), sorted(self.dead)
+            self._log_truth(log_rows, alive_now)
+            end_reason, arrived_at = self._end_of_run(arrived_at, n_steps, alive_now)
+            if end_reason is not None:
                 break
-            if self.k >= n_steps:
-                break
-            if self.cfg.stop.is_set():
-                end_reason = "stopped"
-                break
-            if not alive_now and self.k > 0:
-                end_reason = "no agent left"
-                break
-
             # the step goes on: its clock and sensors go out (none for a step that is not run)
-            clock_pub.put(encode(Clock(step=self.k, t=self.t, dt=dt, answered=answered, lockstep=not self.cfg.realtime,
-                                       dead=dead_now)))
-            scans = w.lidar()
-            for rid in self.ids:
-                i = w.index[rid]
-                if rid not in self.devices:  # a hosted device sends its own odometry
-                    v, om, (ox, oy, oyaw) = w.odometry(rid, dt)
-                    pubs[(rid, "odom")].put(encode(Odom(id=rid, step=self.k, stamp=stamp, v=v, w=om, x=ox, y=oy, yaw=oyaw)))
-                    pubs[(rid, "imu")].put(encode(Imu(id=rid, step=self.k, stamp=stamp, wz=w.gyro(rid))))
-                robot = sc.robots[i]
-                if fix_due(robot, self.k, dt):
-                    fx, fy = w.position_fix(rid, robot.fix[1])
-                    pubs[(rid, "fix")].put(encode(Fix(id=rid, step=self.k, stamp=stamp, x=fx, y=fy, std=robot.fix[1])))
-                lid = sc.robots[i].lidar
-                inc = lid.fov / (lid.beams - 1) if lid.beams > 1 else 0.0
-                a_min = -lid.fov / 2 if lid.beams > 1 else 0.0
-                pubs[(rid, "scan")].put(encode(Scan(id=rid, step=self.k, stamp=stamp, angle_min=a_min,
-                                                    angle_increment=inc, range_max=lid.range, ranges=scans[rid].tolist())))
-                if rid in self.devices:
-                    self.devices[rid].publish_scan(self.t, a_min, inc, lid.range, scans[rid])
-            truth_pub.put(encode(Truth(step=self.k, t=self.t, ids=self.ids, x=w.x.tolist(), y=w.y.tolist(), yaw=w.yaw.tolist())))
-
-            # wait for commands of step k
-            if self.cfg.realtime:
-                delay = wall0 + (self.k + 1) * dt - time.monotonic()
-                if delay > 0:
-                    self.cfg.stop.wait(delay)
-            else:
-                self._wait_commands()
-            with self._cv:
-                step_cmds = self.cmds.pop(self.k, {})
-                answered = sorted(step_cmds)
-                commands = {}
-                for rid in self.ids:
-                    if rid in self.devices:
-                        continue  # below: the device moves the body
-                    if not self.cfg.realtime and rid in step_cmds:
-                        commands[rid] = step_cmds[rid]
-                        continue
-                    last = self.last_cmd.get(rid)
-                    timeout = sc.robots[w.index[rid]].cmd_timeout
-                    # device watchdog (sim time): a stale command becomes zero
-                    commands[rid] = (last[0], last[1]) if last is not None and self.t - last[2] <= timeout else (0.0, 0.0)
-                for old in [s for s in self.cmds if s < self.k]:
-                    del self.cmds[old]
-            for rid, dev in self.devices.items():
-                dev.take_commands(self.t)
-                commands[rid] = dev.motion(self.t + dt)
+            self._publish_step(pubs, clock_pub, truth_pub, answered, dead_now, wall0)
+            commands, answered = self._commands()
             log_rows["cmd_v"].append(np.array([commands[r][0] for r in self.ids]))
             log_rows["cmd_w"].append(np.array([commands[r][1] for r in self.ids]))
-            w.step(commands, dt, exact=self.devices.keys())
-            for rid, dev in self.devices.items():
-                dev.report(self.t + dt, self._body(rid))
+            self._advance(commands)
             self.k += 1
+        return self._result(end_reason, arrived_at, time.monotonic() - wall0, log_rows)
 
-        wall = time.monotonic() - wall0
+    def _begin_devices(self) -> None:
+        """Each hosted device from here on sim time (lock-step) and its odometry count from zero. Its first
+        telemetry goes out at the end of step 0 (an agent's first step takes no device sample: lockstep.py)."""
+        for rid, dev in self.devices.items():
+            if self.cfg.realtime:
+                dev.report(0.0, self._body(rid))
+            else:
+                dev.lockstep(0.0)  # from here the device lives on sim time
+            self._odom_base[rid] = dev.odom_sent
+
+    def _faults_due(self, fault_pub) -> None:
+        """The agent faults (kill, freeze, restart) and the device faults due at this step."""
+        if self._pending_faults:
+            self._inject_faults(fault_pub)
+        for rid, at in self.cfg.device_faults:
+            if at <= self.t + 1e-9 and not any(e.get("event") == "device fault" and e["robot"] == rid for e in self.events):
+                what = self.devices[rid].fail()
+                log.warning("world: t=%.1f s: robot %d's device fails: %s", self.t, rid, what)
+                self.events.append({"t": self.t, "robot": rid, "event": "device fault", "what": what})
+
+    def _log_truth(self, log_rows: dict[str, list], alive_now: set[int]) -> None:
+        w = self.world
+        log_rows["t"].append(self.t)
+        for key, arr in (("x", w.x), ("y", w.y), ("yaw", w.yaw), ("v", w.v), ("w", w.w)):
+            log_rows[key].append(arr.copy())
+        log_rows["alive"].append(np.array([rid in alive_now for rid in self.ids]))
+
+    def _end_of_run(self, arrived_at: float | None, n_steps: int, alive_now: set[int]) -> tuple[str | None, float | None]:
+        """Why the run ends at this step (None: it goes on), and when the leader arrived."""
+        done, arrived_at = self._task_done(arrived_at)
+        if done:
+            return "task complete", arrived_at
+        if self.k >= n_steps:
+            return "duration", arrived_at
+        if self.cfg.stop.is_set():
+            return "stopped", arrived_at
+        if not alive_now and self.k > 0:
+            return "no agent left", arrived_at
+        return None, arrived_at
+
+    def _publish_step(self, pubs, clock_pub, truth_pub, answered: list[int], dead_now: list[int], wall0: float) -> None:
+        """Step k's clock, each robot's sensors (a hosted device sends its own odometry) and the ground truth."""
+        sc, w, dt = self.sc, self.world, self.sc.dt
+        stamp = self.t if not self.cfg.realtime else time.time()
+        device_odom = {rid: dev.odom_sent - self._odom_base.get(rid, 0) for rid, dev in self.devices.items()}
+        clock_pub.put(encode(Clock(step=self.k, t=self.t, dt=dt, answered=answered, lockstep=not self.cfg.realtime,
+                                   dead=dead_now, device_odom=device_odom)))
+        scans = w.lidar()
+        for rid in self.ids:
+            robot = sc.robots[w.index[rid]]
+            if rid not in self.devices:
+                v, om, (ox, oy, oyaw) = w.odometry(rid, dt)
+                pubs[(rid, "odom")].put(encode(Odom(id=rid, step=self.k, stamp=stamp, v=v, w=om, x=ox, y=oy, yaw=oyaw)))
+                pubs[(rid, "imu")].put(encode(Imu(id=rid, step=self.k, stamp=stamp, wz=w.gyro(rid))))
+            if fix_due(robot, self.k, dt):
+                fx, fy = w.position_fix(rid, robot.fix[1])
+                pubs[(rid, "fix")].put(encode(Fix(id=rid, step=self.k, stamp=stamp, x=fx, y=fy, std=robot.fix[1])))
+            lid = robot.lidar
+            inc = lid.fov / (lid.beams - 1) if lid.beams > 1 else 0.0
+            a_min = -lid.fov / 2 if lid.beams > 1 else 0.0
+            pubs[(rid, "scan")].put(encode(Scan(id=rid, step=self.k, stamp=stamp, angle_min=a_min, angle_increment=inc,
+                                                range_max=lid.range, ranges=scans[rid].tolist())))
+            if rid in self.devices:
+                self.devices[rid].publish_scan(self.t, a_min, inc, lid.range, scans[rid])
+        truth_pub.put(encode(Truth(step=self.k, t=self.t, ids=self.ids, x=w.x.tolist(), y=w.y.tolist(), yaw=w.yaw.tolist())))
+        if self.cfg.realtime:  # real time: the step lasts dt of wall time
+            delay = wall0 + (self.k + 1) * dt - time.monotonic()
+            if delay > 0:
+                self.cfg.stop.wait(delay)
+
+    def _commands(self) -> tuple[dict[int, tuple[float, float]], list[int]]:
+        """Lock-step: wait for step k's commands (the barrier). Each simulated base's command for the step, with its
+        device watchdog in sim time (a stale command becomes zero); who answered step k."""
+        if not self.cfg.realtime:
+            late = self.barrier.wait(self.k, self.cfg.stop)
+            if late:
+                self.late_steps += 1
+                self.events.append({"t": self.t, "robots": late, "event": "unresponsive"})
+        commands: dict[int, tuple[float, float]] = {}
+        with self._cv:
+            step_cmds = self.barrier.take(self.k)
+            for rid in self.ids:
+                if rid in self.devices:
+                    continue  # the device moves the body (_advance)
+                if not self.cfg.realtime and rid in step_cmds:
+                    commands[rid] = step_cmds[rid]
+                    continue
+                last = self.last_cmd.get(rid)
+                timeout = self.sc.robots[self.world.index[rid]].cmd_timeout
+                commands[rid] = (last[0], last[1]) if last is not None and self.t - last[2] <= timeout else (0.0, 0.0)
+        for rid, dev in self.devices.items():
+            dev.take_commands(self.t)
+            commands[rid] = dev.motion(self.t + self.sc.dt)
+        return commands, sorted(step_cmds)
+
+    def _advance(self, commands: dict[int, tuple[float, float]]) -> None:
+        """The world steps; each device hears where its body went and sends the telemetry due."""
+        self.world.step(commands, self.sc.dt, exact=self.devices.keys())
+        for rid, dev in self.devices.items():
+            dev.report(self.t + self.sc.dt, self._body(rid))
+
+    def _result(self, end_reason: str, arrived_at: float | None, wall: float, log_rows: dict[str, list]) -> dict:
         log_rows["cmd_v"].append(np.zeros(len(self.ids)))
         log_rows["cmd_w"].append(np.zeros(len(self.ids)))
         result = {"end_reason": end_reason, "steps": self.k, "sim_time_s": self.t, "wall_time_s": wall,
@@ -392,23 +411,6 @@ class WorldServer:
             result["malformed"] = self.malformed
         if self.cfg.out is not None:
             (self.cfg.out / "world.json").write_text(json.dumps(result, indent=2))
-
-    def _wait_commands(self) -> None:
-        deadline = time.monotonic() + self.cfg.lockstep_timeout_s
-        with self._cv:
-            while True:
-                got = self.cmds.get(self.k, {})
-                waiting = (self.alive - self.unresponsive) - set(got)
-                if not waiting or self.cfg.stop.is_set():
-                    return
-                if time.monotonic() > deadline:
-                    log.warning("world: step %d: no command from %s within %.1f s: not waiting for them", self.k,
-                                sorted(waiting), self.cfg.lockstep_timeout_s)
-                    self.unresponsive |= waiting
-                    self.late_steps += 1
-                    self.events.append({"t": self.t, "robots": sorted(waiting), "event": "unresponsive"})
-                    return
-                self._cv.wait(0.1)
 
     def _task_done(self, arrived_at: float | None) -> tuple[bool, float | None]:
         if not self.cfg.stop_early:

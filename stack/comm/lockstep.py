@@ -1,0 +1,196 @@
+"""The lock-step barrier, both sides of it: the world's wait for every live agent's step-k command, and the
+agent's wait for step k's inputs.
+
+A lock-step run is the special case in which the world's clock drives everything: per step k the world
+publishes ``world/clock`` (k, t, who answered k-1, who is dead, how many odometry samples each hosted device
+has sent), the sensors of step k, then waits (``CommandBarrier``) until every live agent has commanded step k.
+An agent (``StepBarrier``) waits until step k's inputs are all in, then for the states that the robots which
+answered k-1 sent before their command, so that every agent computes step k from the same messages, whatever
+the wall clock does.
+
+Device odometry carries no step (CAN encoder frames, MAVLink telemetry, a bridged base's ``Odometry``): the
+clock's ``device_odom`` counts the samples each device has sent since lock-step began. The world sends step
+k's samples only after every agent has commanded k-1, so the samples an agent receives between its commands
+of k-1 and k are exactly step k's; the agent waits for ``device_odom[k] - device_odom[k-1]`` of them (bounded
+by ``device_wait_s``: a sample lost on the wire is counted in ``device_late``, never a stall). Samples beyond
+that count (sent before lock-step began, or left in a device's buffer by a killed agent) precede the step's
+own on the same wire: the newest ``n`` are the step's, the older ones are dropped and counted as ``strays``.
+An agent's first step (a fresh start or a restart) is a sync step: it takes no device sample (all before it
+are strays) and so commands zero; the world sends no device telemetry before step 1. What remains is a sample
+sent before lock-step began that is still on its wire after the agent's whole first step: it would count for
+step 1 (and the next step's count then drops it).
+
+Wall time enters only as the bounds of these waits (a stalled or lost peer); a run in which no bound
+expires is the same run every time.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Callable, Iterable
+
+from .messages import Clock
+
+log = logging.getLogger("stack.lockstep")
+
+
+class CommandBarrier:
+    """World side: step k's commands, per robot, and the wait for every live, responsive agent's.
+
+    ``cv`` is the world's condition (its callbacks hold it while they update ``live``); ``live()`` returns the
+    robots whose liveliness token is up. An agent that does not answer within ``timeout_s`` (wall) is marked
+    unresponsive and not waited for until it answers again.
+    """
+
+    def __init__(self, cv: threading.Condition, live: Callable[[], set[int]], timeout_s: float):
+        self._cv = cv
+        self._live = live
+        self.timeout_s = timeout_s
+        self.cmds: dict[int, dict[int, tuple[float, float] | None]] = {}  # step -> id -> (v, w) (None: on a device's wire)
+        self.unresponsive: set[int] = set()
+        self.step = 0  # the step being waited for
+
+    def answered(self, rid: int, step: int, cmd: tuple[float, float] | None) -> None:
+        """Robot ``rid`` has commanded ``step`` (caller holds the condition)."""
+        if step < 0:
+            return
+        got = self.cmds.setdefault(step, {})
+        got[rid] = cmd
+        self.unresponsive.discard(rid)
+        if step == self.step and len(got) >= len(self._live() - self.unresponsive):
+            self._cv.notify_all()  # wake the world once the step may be complete
+
+    def responsive(self, ids: Iterable[int]) -> None:
+        """Wait for these again (e.g. restarted agents; caller holds the condition)."""
+        self.unresponsive -= set(ids)
+
+    def wait(self, k: int, stop: threading.Event) -> list[int]:
+        """Until every live, responsive agent has commanded step ``k``; returns the ones given up on."""
+        deadline = time.monotonic() + self.timeout_s
+        with self._cv:
+            self.step = k
+            while True:
+                waiting = (self._live() - self.unresponsive) - set(self.cmds.get(k, {}))
+                if not waiting or stop.is_set():
+                    return []
+                if time.monotonic() > deadline:
+                    log.warning("world: step %d: no command from %s within %.1f s: not waiting for them", k,
+                                sorted(waiting), self.timeout_s)
+                    self.unresponsive |= waiting
+                    return sorted(waiting)
+                self._cv.wait(0.1)
+
+    def take(self, k: int) -> dict[int, tuple[float, float] | None]:
+        """Step ``k``'s commands (caller holds the condition); older steps' are forgotten."""
+        got = self.cmds.pop(k, {})
+        for old in [s for s in self.cmds if s < k]:
+            del self.cmds[old]
+        return got
+
+
+class StepBarrier:
+    """Agent side: which step comes next and when its inputs are complete.
+
+    The agent's zenoh callbacks feed it under ``cv`` (``on_clock``, ``on_state``, ``on_sample``); the loop
+    calls ``wait_step`` and then ``wait_neighbours``.
+    """
+
+    def __init__(self, robot_id: int, cv: threading.Condition, *, neighbour_wait_s: float = 1.0,
+                 device_wait_s: float = 2.0, sensor_timeout_s: float = 30.0):
+        self.id = robot_id
+        self._cv = cv
+        self.neighbour_wait_s = neighbour_wait_s
+        self.device_wait_s = device_wait_s
+        self.sensor_timeout_s = sensor_timeout_s
+        self.clocks: dict[int, Clock] = {}  # the newest clocks by step
+        self._seen: dict[int, int] = {}  # sender -> newest step of its state seen on the wire
+        self._awaited: set[int] = set()
+        self._awaited_step = -1
+        self._sent_before: int | None = None  # device_odom of our previous step
+        self.device_late = 0  # steps that went on without all of the device's samples
+        self.strays = 0  # device samples that belonged to no step (dropped)
+        self.neighbour_timeouts = 0  # steps that went on without an awaited neighbour state
+
+    # --- fed by the callbacks (caller holds cv) ---------------------------------------------------
+    def on_clock(self, m: Clock) -> None:
+        self.clocks[m.step] = m
+        for old in [s for s in self.clocks if s < m.step - 5]:
+            del self.clocks[old]
+        self._cv.notify_all()
+
+    def on_state(self, sender: int, step: int) -> None:
+        self._seen[sender] = max(self._seen.get(sender, -1), step)
+        if self._awaited and sender in self._awaited and step >= self._awaited_step:
+            self._awaited.discard(sender)
+            if not self._awaited:  # wake the loop once, when the last awaited state is in
+                self._cv.notify_all()
+
+    # --- the agent's waits ------------------------------------------------------------------------
+    def wait_step(self, last: int, ready: Callable[[int], bool], pending: Callable[[], int],
+                  stop: threading.Event) -> tuple[Clock, int | None] | None:
+        """Block (caller holds cv) until the newest step k > ``last`` has its clock and ``ready(k)`` (the
+        scan, a step-carrying driver's sample, the gyro, a due fix), and ``pending()`` device samples number
+        step k's count. Returns (clock k, how many of the newest pending samples are step k's; None: the robot
+        has no hosted device), or None on ``stop``. No clock or sensors for ``sensor_timeout_s`` is a TimeoutError."""
+        deadline = time.monotonic() + self.sensor_timeout_s
+        device_deadline: float | None = None
+        while not stop.is_set():
+            k = max(self.clocks, default=-1)
+            if k > last and ready(k):
+                clock = self.clocks[k]
+                need = self._device_count(clock)
+                if need is None or pending() >= need:
+                    break
+                device_deadline = device_deadline or time.monotonic() + self.device_wait_s
+                if time.monotonic() > device_deadline:
+                    self.device_late += 1
+                    log.warning("agent %d: step %d: %d of %d device odometry samples within %.1f s; going on",
+                                self.id, k, pending(), need, self.device_wait_s)
+                    break
+            elif time.monotonic() > deadline:
+                raise TimeoutError(f"agent {self.id}: no sensor data from the world for {self.sensor_timeout_s:.0f} s")
+            self._cv.wait(0.05)
+        else:
+            return None
+        need = self._device_count(clock)
+        if need is not None and pending() > need:
+            self.strays += pending() - need
+        self._sent_before = clock.device_odom.get(self.id)
+        return clock, need
+
+    def _device_count(self, clock: Clock) -> int | None:
+        """How many device samples step ``clock.step`` brings (None: the robot has no hosted device). Our first
+        step is a sync step: the device's history is unknown, so none of what came before is the step's (the
+        agent drops it all and, without odometry, commands zero); from the next step on the counts hold."""
+        sent = clock.device_odom.get(self.id)
+        if sent is None:
+            return None
+        if self._sent_before is None:
+            return 0
+        return max(0, sent - self._sent_before)
+
+    def wait_neighbours(self, clock: Clock, first: bool, stop: threading.Event) -> bool:
+        """Block (caller holds cv), bounded, until every robot that answered step k-1 (alive, not us) has had
+        its state of k-1 seen. A (re)started agent has nobody to wait for. False on ``stop``."""
+        k = clock.step
+        if first:
+            return True
+        self._awaited_step = k - 1
+        self._awaited = {i for i in clock.answered if i != self.id and i not in clock.dead
+                         and self._seen.get(i, -1) < k - 1}
+        t_end = time.monotonic() + self.neighbour_wait_s
+        while self._awaited and time.monotonic() < t_end:
+            if stop.is_set():
+                return False
+            self._cv.wait(0.05)
+        if self._awaited:  # a sender answered the world but its state never reached us: go on, say so
+            self.neighbour_timeouts += 1
+            log.warning("agent %d: step %d: no state of step %d from %s within %.1f s; going on without",
+                        self.id, k, k - 1, sorted(self._awaited), self.neighbour_wait_s)
+        self._awaited = set()
+        return True
+
+
+__all__ = ["CommandBarrier", "StepBarrier"]
