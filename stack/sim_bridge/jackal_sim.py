@@ -145,6 +145,12 @@ class _HardwareTelemetry:
         x, y, yaw = robot.pose
         self.realtime_body = (Body(x, y, yaw, 0.0, 0.0), 0.0)  # newest body and the wall time it came
 
+    def reseed(self) -> None:
+        """Jitter and losses from the seed again (lock-step starts)."""
+        with self.lock:
+            self._rng = np.random.default_rng([self.dev.seed, self.dev.robot_id, 12])
+            self.odom.rng = self.scan.rng = self._rng
+
     def _streams(self) -> tuple[Stream, Stream]:
         c = self.cfg
         return (Stream(c.odom_rate_hz, jitter_s=c.jitter_s, drop_prob=c.drop_prob, rng=self._rng),
@@ -290,6 +296,14 @@ class JackalDevice(HostedDevice):
 
     def driver_params(self) -> dict[str, Any]:
         return {"namespace": self.namespace, "open_timeout": max(self._open_timeout, SIM_OPEN_TIMEOUT_S)}
+
+    def lockstep(self, t_sim: float) -> None:
+        """Sim time from here; the random streams start again from the seed, so what the wall-clock phase
+        before drew (how many samples it sent depends on the machine) never shows in a lock-step run."""
+        super().lockstep(t_sim)
+        self._rng = np.random.default_rng([self.seed, self.robot_id, 11])
+        if self.hardware is not None:
+            self.hardware.reseed()
 
     def _stop_realtime(self) -> None:
         self._halt.set()
