@@ -155,8 +155,8 @@ class StepPipeline:
 
     @property
     def needs_lidar(self) -> bool:
-        """Every policy but one that is itself the situation-1 controller (see the module docstring)."""
-        return getattr(self.policy, "needs_lidar", type(self.policy) is not type(self.pid))
+        """The policy says (``Policy.needs_lidar``): every one but ``pid``, which drives on the estimate alone."""
+        return self.policy.needs_lidar
 
     # --- the step ------------------------------------------------------------------------------
     def step(self, inp: StepInputs) -> StepOutput:

@@ -55,6 +55,8 @@ class Policy(ABC):
     hybrid = True
     """True: the policy is the "network" of Bai's hybrid strategy (PID drives in situation 1);
     False: the policy drives in every situation (its paper has its own avoidance)."""
+    needs_lidar = True
+    """False: the policy drives without the lidar (``pid``: go-to-goal only), so a stale scan does not stop it."""
     leader_hold: tuple[float, float] | None = None
     """Hybrid leaders: (start, stop) fractions of d_com over which the leader's speed falls to zero as its
     farthest robot gets farther (ours, beyond eq. 20; see ``DecisionLayer.leader_speed``); None: eq. (20) only."""

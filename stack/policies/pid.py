@@ -41,6 +41,7 @@ class PidConfig:
 
 class PidPolicy(Policy):
     name = "pid"
+    needs_lidar = False  # go-to-goal: drives on the estimate alone
 
     def __init__(self, cfg: PidConfig | None = None, v_cap: float = 1.0):
         self.g = cfg or PidConfig()
