@@ -63,7 +63,7 @@ _BLOCK = textwrap.dedent("""
     class Block(importlib.abc.MetaPathFinder):
         def find_spec(self, name, path=None, target=None):
             if name.split(".")[0] in BLOCKED:
-                raise ImportError(f"{name} is not installed on this robot")
+                raise ModuleNotFoundError(f"No module named {name!r}", name=name)  # as a missing package does
     sys.meta_path.insert(0, Block())
 """)
 
@@ -104,3 +104,18 @@ def test_a_robot_with_any_driver_and_a_numpy_policy_imports_no_extra():
     """)
     assert p.returncode == 0, p.stderr
     assert p.stdout.strip() == "ok"
+
+
+def test_a_drl_robot_without_torch_is_told_which_extra_in_one_line(tmp_path):
+    """``--policy drl`` where torch is not installed: one line naming the extra, exit 2, no traceback."""
+    p = _run_without_extras("""
+        import sys
+        from stack.agents.cli import cli
+        sys.argv = ["stack-agent", "--id", "1", "--role", "follower", "--scenario", "scenarios/four-robot-obstacles.yaml",
+                    "--policy", "drl", "--connect", "tcp/127.0.0.1:9"]
+        sys.exit(cli())
+    """)
+    assert p.returncode == 2, (p.stdout, p.stderr)
+    lines = p.stderr.strip().splitlines()
+    assert lines == ["stack-agent: policy 'drl' needs the Python package 'torch', not installed here "
+                     "(install the 'drl' extra: pip install 'formation-stack[drl]')"], p.stderr

@@ -11,6 +11,7 @@ from ..argtypes import fleet_name
 from ..comm.session import ConfigFileError, EndpointError, SessionConfig, SessionError, check_endpoint, open_session
 from ..drivers import DriverError, UnknownDriver
 from ..policies import PolicyUnavailable
+from ..policies import factory as policy_factory
 from ..scenario import ScenarioError, driver_names, load_scenario, policy_names, with_driver_settings, with_overrides
 from .agent import Agent, AgentConfig
 
@@ -93,6 +94,7 @@ def cli(argv: list[str] | None = None) -> int:
         print(f"stack-agent: {e}", file=sys.stderr)
         return 2
     try:
+        policy_factory(cfg.policy or cfg.scenario.robot(cfg.robot_id).policy)  # a missing extra: said before connecting
         return main(cfg)
     except (PolicyUnavailable, UnknownDriver, ConfigFileError) as e:
         print(f"stack-agent: {e}", file=sys.stderr)

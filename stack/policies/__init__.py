@@ -33,11 +33,26 @@ def available() -> list[str]:
 
 
 def make_policy(name: str, robot, **kw) -> Policy:
+    return factory(name)(robot, **kw)
+
+
+def factory(name: str):
+    """The factory of policy ``name`` (imported now): PolicyUnavailable, one line, if it is not registered or
+    needs a package this install lacks (an extra), so an agent can say so before it connects to anything."""
     try:
         rec = POLICIES[name]
     except PluginError:
         raise PolicyUnavailable(f"policy {name!r} is not implemented yet (available: {', '.join(available())})") from None
-    return rec.make()(robot, **kw)
+    try:
+        return rec.make()
+    except ModuleNotFoundError as e:  # a policy from an extra this install does not have
+        extra = EXTRA_OF.get((e.name or "").split(".")[0])
+        hint = f" (install the '{extra}' extra: pip install 'formation-stack[{extra}]')" if extra else ""
+        raise PolicyUnavailable(f"policy {name!r} needs the Python package {e.name!r}, not installed here{hint}") from None
+
+
+EXTRA_OF = {"torch": "drl", "pybullet": "sim", "matplotlib": "sim"}
+"""Packages that only an extra installs -> that extra (``pyproject.toml``)."""
 
 
 def settings_class(key: str) -> type | None:
