@@ -67,7 +67,8 @@ NODE, PUBLISHER, SUBSCRIPTION, SERVICE, CLIENT = "NN", "MP", "MS", "SS", "SC"
 GID_SIZE = 16
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 
-_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+"""A ROS 2 node name (one token)."""
 _TOPIC = re.compile(r"/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
 _NAMESPACE = re.compile(r"/|(/[A-Za-z_][A-Za-z0-9_]*)+")
 _ROS_TYPE = re.compile(r"([A-Za-z][A-Za-z0-9_]*)/msg/([A-Za-z][A-Za-z0-9_]*)")
@@ -413,7 +414,7 @@ class NodeConfig:
     """The SROS 2 enclave (``/`` without security)."""
 
     def __post_init__(self):
-        if not (isinstance(self.name, str) and _NAME.fullmatch(self.name)):
+        if not (isinstance(self.name, str) and NAME.fullmatch(self.name)):
             raise ValueError(f"rmw_zenoh node: name {self.name!r} is not a ROS 2 node name (letters, digits, '_')")
         for what in ("namespace", "enclave"):
             if not (isinstance(getattr(self, what), str) and _NAMESPACE.fullmatch(getattr(self, what))):
@@ -563,6 +564,8 @@ class RmwZenohNode:
         while self._declared:
             self._declared.pop().undeclare()
 
+    undeclare = close  # so that a node sits with the publishers and subscribers a component undeclares
+
 
 class RosGraph:
     """The ROS graph as rmw_zenoh's graph cache sees it: liveliness tokens of one domain, parsed.
@@ -613,7 +616,7 @@ class RosGraph:
 
 
 __all__ = ["ADMIN_SPACE", "Attachment", "BEST_EFFORT", "CLIENT", "DEFAULT_QOS", "DISTROS", "GID_SIZE", "GraphEntity",
-           "HASH_NOT_SUPPORTED", "NODE", "NodeConfig", "POSE_STAMPED", "PUBLISHER", "PlanarPose", "Qos", "RELIABLE",
+           "HASH_NOT_SUPPORTED", "NAME", "NODE", "NodeConfig", "POSE_STAMPED", "PUBLISHER", "PlanarPose", "Qos", "RELIABLE",
            "RmwPublisher", "RmwZenohError", "RmwZenohNode", "RosGraph", "SENSOR_QOS", "SERVICE", "SUBSCRIPTION",
            "dds_type_name", "decode_pose_stamped", "demangle", "encode_pose_stamped", "fully_qualified", "gid_of",
            "mangle", "parse_token", "rihs01", "topic_key", "type_description", "type_hash"]
