@@ -56,7 +56,8 @@ import zenoh
 
 from . import rmw_zenoh
 from .base import Driver, DriverError, DriverLimits, Keepalive, Odometry
-from .ros2cdr import LASER_SCAN, ODOMETRY, TWIST, CdrError, LaserScanData, decode_laserscan, decode_odometry, encode_twist
+from .ros2cdr import LASER_SCAN, ODOMETRY, TWIST, CdrError, LaserScanData, decode_laserscan, decode_odometry
+from .ros2cdr import encode_twist
 
 log = logging.getLogger(__name__)
 
@@ -123,10 +124,11 @@ class JackalConfig:
             raise ValueError("jackal driver: keepalive_period must be under 0.5 s (the controller's cmd_vel timeout)")
         if self.transport not in TRANSPORTS:
             raise ValueError(f"jackal driver: transport {self.transport!r} is not one of {', '.join(TRANSPORTS)}")
-        if not (isinstance(self.domain_id, int) and not isinstance(self.domain_id, bool) and 0 <= self.domain_id <= 232):
+        if isinstance(self.domain_id, bool) or not (isinstance(self.domain_id, int) and 0 <= self.domain_id <= 232):
             raise ValueError(f"jackal driver: domain_id must be an integer 0..232, not {self.domain_id!r}")
         if self.ros_distro not in rmw_zenoh.DISTROS:
-            raise ValueError(f"jackal driver: ros_distro {self.ros_distro!r} is not one of {', '.join(rmw_zenoh.DISTROS)}")
+            raise ValueError(f"jackal driver: ros_distro {self.ros_distro!r} is not one of "
+                             f"{', '.join(rmw_zenoh.DISTROS)}")
         if self.transport == "rmw_zenoh":  # a bridge's key prefix need not be a ROS name; rmw_zenoh's must
             try:
                 node = self.node_config(0)
@@ -135,7 +137,8 @@ class JackalConfig:
             except ValueError as e:
                 raise ValueError(f"jackal driver (transport rmw_zenoh): {e}") from None
         elif not (isinstance(self.node_name, str) and rmw_zenoh.NAME.fullmatch(self.node_name)):
-            raise ValueError(f"jackal driver: node_name {self.node_name!r} is not a ROS 2 node name (letters, digits, '_')")
+            raise ValueError(f"jackal driver: node_name {self.node_name!r} is not a ROS 2 node name "
+                             "(letters, digits, '_')")
 
     def key(self, robot_id: int, topic: str) -> str:
         """The bridge's Zenoh key of a topic of robot ``robot_id`` (its ROS 2 name without the leading slash)."""
@@ -216,8 +219,8 @@ class JackalDriver(Driver):
     def _open_bridge(self) -> None:
         """zenoh-bridge-ros2dds: plain subscribers and a publisher on the topic names."""
         s = self._session
-        self._declared += [s.declare_subscriber(self.odom_key, lambda x: self._odom_payload(x.payload.to_bytes(), x.key_expr)),
-                           s.declare_subscriber(self.scan_key, lambda x: self._scan_payload(x.payload.to_bytes(), x.key_expr))]
+        for key, handle in ((self.odom_key, self._odom_payload), (self.scan_key, self._scan_payload)):
+            self._declared.append(s.declare_subscriber(key, lambda x, h=handle: h(x.payload.to_bytes(), x.key_expr)))
         self._pub = s.declare_publisher(self.cmd_key, encoding=zenoh.Encoding.APPLICATION_CDR,
                                         congestion_control=zenoh.CongestionControl.BLOCK)
         self._declared.append(self._pub)
@@ -231,7 +234,7 @@ class JackalDriver(Driver):
         node.subscribe(cfg.odom_topic, ODOMETRY, lambda payload, att: self._odom_payload(payload, self.odom_key))
         node.subscribe(cfg.scan_topic, LASER_SCAN, lambda payload, att: self._scan_payload(payload, self.scan_key),
                        qos=rmw_zenoh.SENSOR_QOS)
-        self._pub = node.publisher(cfg.cmd_topic, TWIST)
+        self._pub = node.publisher(cfg.cmd_topic, TWIST, block=True)  # as on the bridge: a command waits, never drops
 
     def _rmw_malformed(self, kind: str) -> None:
         """The node dropped a sample (``kind``: no_attachment, bad_attachment, ...) or saw a gap (``lost``)."""

@@ -439,8 +439,11 @@ def _next_entity_id(zid: str) -> int:
 class RmwPublisher:
     """A publisher whose samples carry rmw_zenoh's attachment (sequence from 1, wall-clock ns, our GID)."""
 
-    def __init__(self, session: zenoh.Session, key: str, entity: GraphEntity):
+    def __init__(self, session: zenoh.Session, key: str, entity: GraphEntity, block: bool | None = None):
+        """``block``: wait when the link is congested rather than drop; None: as rmw_zenoh (only for KEEP_ALL).
+        Local only: it changes nothing on the wire."""
         qos = entity.qos or DEFAULT_QOS
+        block = qos.history == KEEP_ALL if block is None else block
         self.key, self.entity = key, entity
         self.gid = gid_of(entity.token())
         self._lock = threading.Lock()
@@ -448,8 +451,7 @@ class RmwPublisher:
         self._pub = session.declare_publisher(
             key, encoding=zenoh.Encoding.APPLICATION_CDR,
             reliability=zenoh.Reliability.RELIABLE if qos.reliability == RELIABLE else zenoh.Reliability.BEST_EFFORT,
-            congestion_control=(zenoh.CongestionControl.BLOCK if qos.history == KEEP_ALL
-                                else zenoh.CongestionControl.DROP))
+            congestion_control=zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP)
         self._token = session.liveliness().declare_token(entity.token())
 
     def put(self, payload: bytes) -> Attachment:
@@ -501,10 +503,10 @@ class RmwZenohNode:
                              type_hash=type_hash(ros_type, cfg.distro), qos=qos)
         return topic_key(cfg.domain_id, fq, ros_type, cfg.distro), entity
 
-    def publisher(self, topic: str, ros_type: str, qos: Qos = DEFAULT_QOS) -> RmwPublisher:
-        """A publisher on ``topic`` (relative to the namespace) with its ``MP`` token."""
+    def publisher(self, topic: str, ros_type: str, qos: Qos = DEFAULT_QOS, *, block: bool | None = None) -> RmwPublisher:
+        """A publisher on ``topic`` (relative to the namespace) with its ``MP`` token (``block``: RmwPublisher's)."""
         key, entity = self._endpoint(PUBLISHER, topic, ros_type, qos)
-        pub = RmwPublisher(self._session, key, entity)
+        pub = RmwPublisher(self._session, key, entity, block)
         self._declared.append(pub)
         return pub
 
