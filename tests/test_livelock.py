@@ -146,3 +146,25 @@ def test_the_leaders_hold_gives_up_after_max_hold_and_says_why():
     assert dl.livelock()["events"][-1]["event"] == "hold-released"
     # the static eq. (20) + hold is unchanged (unbounded, as before)
     assert math.isclose(DecisionLayer.leader_speed(1.0, 9.0, 5.0, hold, 10.0), v20 / 3)
+
+
+def test_the_report_sums_the_agents_livelock_counters():
+    """stack.fleet.metrics.livelock over the agents' Diag.stuck (what DecisionLayer.livelock() returns)."""
+    from stack.fleet.metrics import diag_fields, livelock
+
+    follower = layer()
+    for k in range(500):  # pinned: stuck at 8 s, tries at 8, 20, 32 s, gave up at 44 s
+        step(follower, round(k * DT, 6), 0.0, 0.0)
+    leader = DecisionLayer(0, "leader", FORMATION, goal=None, radius=RADIUS, comm_range=10.0, scan_range=5.0, dt=DT,
+                           hold=HoldConfig(max_hold=5.0))
+    leader.farthest = (1, 9.2)
+    for k in range(80):
+        leader.hold_speed(1.0, 9.2, k * DT, 5.0, (0.8, 0.95), 10.0)
+    diags = {0: SimpleNamespace(stuck=leader.livelock()), 1: SimpleNamespace(stuck=follower.livelock()),
+             2: SimpleNamespace(stuck=None), 3: SimpleNamespace()}  # an agent without the detector
+    ll = livelock(diags)
+    assert ll["stuck_episodes"] == 1 and ll["resolved_by"]["gave_up"] == 1 and ll["stuck_robots"] == [1]
+    assert ll["hold_give_ups"] == 1 and ll["hold_events"][0]["leader"] == 0 and ll["hold_events"][0]["robot"] == 1
+    assert "waiting for robot 1 at 9.2 m" in ll["hold_events"][0]["reason"]
+    assert livelock({0: SimpleNamespace(stuck=None)}) is None
+    assert diag_fields(None)["stuck"] is None
