@@ -60,7 +60,9 @@ def main(argv: list[str] | None = None) -> int:
     a.out.mkdir(parents=True, exist_ok=True)
     env = FormationParallelEnv(EnvConfig(robots=a.robots, max_steps=250))
     weights = a.out / "drl.pt"
-    summary = {"train": train_on_env(env, EnvLearnConfig(steps=a.steps, init=a.init, seed=a.seed), weights)}
+    # from scratch: explore widely; from weights: explore little and learn slowly, so as to keep what they know
+    tune = {} if a.init is None else {"eps_start": 0.1, "eps_end": 0.02, "lr": 1e-4, "learn_start": 500}
+    summary = {"train": train_on_env(env, EnvLearnConfig(steps=a.steps, init=a.init, seed=a.seed, **tune), weights)}
     if a.eval_episodes:
         from stack.policies.drl.policy import load_network
 

@@ -168,3 +168,18 @@ def test_the_report_sums_the_agents_livelock_counters():
     assert "waiting for robot 1 at 9.2 m" in ll["hold_events"][0]["reason"]
     assert livelock({0: SimpleNamespace(stuck=None)}) is None
     assert diag_fields(None)["stuck"] is None
+
+
+def test_a_leader_held_by_the_static_eq_20_is_not_stuck_but_a_pinned_leader_is():
+    """An agent that only calls the static leader_speed: the leader standing for a follower 9 m off (the default
+    hold band) is waiting, not stuck; the same leader pinned with its followers near is stuck."""
+    for d_far, stuck in ((9.0, False), (3.0, True)):
+        dl = DecisionLayer(0, "leader", FORMATION, goal=None, radius=RADIUS, comm_range=10.0, scan_range=5.0, dt=DT)
+        pose = SimpleNamespace(x=0.0, y=0.0, yaw=0.0, v=0.0, w=0.0)
+        s = scan_at(0.0, 0.0, 0.0)
+        seen = set()
+        for k in range(120):
+            t = round(k * DT, 6)
+            far = Neighbour(1, "follower", -d_far, 0.0, 0.0, 0.0, 0.0, t, k)
+            seen.add(dl.decide(pose, t, {1: far}, s[None], float(s.min()), t_run=t).situation)
+        assert ("escape" in seen) == stuck, (d_far, seen)

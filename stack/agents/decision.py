@@ -31,6 +31,7 @@ from ..models.observation import PREDICT_HORIZON_S, neighbour_view, observation_
 from ..policies.base import Observation
 from .livelock import RESOLUTIONS, HoldConfig, HoldGuard, StuckConfig, StuckDetector
 
+DEFAULT_HOLD_START = 0.8  # DrlConfig.leader_hold's default start [fraction of d_com]
 SITUATIONS = ("leader-1", "leader-2", "follower-1", "follower-2", "follower-3", "peer", "waiting", "escape")
 
 
@@ -123,7 +124,7 @@ class DecisionLayer:
                                                     target_yaw=target_yaw, alpha=alpha))
 
         dec = self._situation(pose, now, neighbours, view, obs, d_omin, t_run, dead)
-        if dec.target is None or (self.role == "leader" and self.hold.holding):
+        if dec.target is None or (self.role == "leader" and self._held(dec.d_rmax)):
             self.stuck.pause()  # nothing to go to, or held on purpose (bounded by the hold's own clock)
             return self._count(dec)
         sc = np.asarray(scans, float)
@@ -133,6 +134,11 @@ class DecisionLayer:
         if wp is not None:
             dec = Decision("escape", True, obs(wp), wp, dec.d_rmin, dec.d_rmax, dec.d_omin)
         return self._count(dec)
+
+    def _held(self, d_rmax: float) -> bool:
+        """Whether the leader's hold slows it on purpose (last step). An agent that never calls :meth:`hold_speed`
+        (the static :meth:`leader_speed` alone) holds from the default hold's start (0.8 d_com) on."""
+        return self.hold.holding if self.hold.used else d_rmax >= DEFAULT_HOLD_START * self.comm_range
 
     def _situation(self, pose, now, neighbours, view, obs, d_omin, t_run, dead) -> Decision:
         """Section IV's situations (Algorithm 2)."""

@@ -195,6 +195,7 @@ class HoldGuard:
         self.given_up: dict | None = None  # the give-up in force
         self.give_ups = 0
         self.events: list[dict] = []
+        self.used = False  # whether the agent drives the leader through :meth:`speed` at all
 
     @property
     def holding(self) -> bool:
@@ -204,6 +205,7 @@ class HoldGuard:
     def speed(self, v20: float, factor: float, t: float, waiting_for: tuple[int, float] | None) -> float:
         """The command at time ``t`` from the eq. (20) speed ``v20`` and the hold's ``factor`` (1: no hold);
         ``waiting_for``: (id, distance) of the farthest robot, the one the hold waits for."""
+        self.used = True
         if factor >= 1.0:
             if self.given_up is not None:
                 self._event({"t": round(t, 2), "event": "hold-released", "robot": self.given_up["robot"]})
