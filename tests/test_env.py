@@ -6,16 +6,15 @@ import math
 import numpy as np
 import pytest
 
-pytest.importorskip("pettingzoo")
-from gymnasium.utils.env_checker import check_env  # noqa: E402
-from pettingzoo.test import parallel_api_test, parallel_seed_test  # noqa: E402
+from gymnasium.utils.env_checker import check_env  # the `test` extra: pettingzoo, gymnasium
+from pettingzoo.test import parallel_api_test, parallel_seed_test
 
-from stack.policies.drl.observation import ACTIONS, N_ACTIONS  # noqa: E402
-from stack.policies.drl.reward import reward  # noqa: E402
-from stack.scenario import load_scenario, parse_scenario  # noqa: E402
-from stack.train.env import STAND, EnvConfig, FormationEnv, FormationParallelEnv, network_inputs  # noqa: E402
+from stack.policies.drl.observation import ACTIONS, N_ACTIONS
+from stack.policies.drl.reward import reward
+from stack.scenario import load_scenario, parse_scenario
+from stack.train.env import STAND, EnvConfig, FormationEnv, FormationParallelEnv, network_inputs
 
-from conftest import ROOT, run_fleet, scenario_dict, write_scenario  # noqa: E402
+from conftest import ROOT, run_fleet, scenario_dict, write_scenario
 
 DIAMOND = ROOT / "scenarios" / "four-robot-diamond.yaml"
 
