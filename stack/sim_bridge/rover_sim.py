@@ -17,10 +17,10 @@ Ground-station traffic, as ArduPilot answers it (``GCS_MAVLINK`` / ``Rover/GCS_M
 telemetry only when asked, by ``REQUEST_DATA_STREAM`` (the stream groups POSITION,
 EXTRA1, EXTENDED_STATUS and ALL; no ACK, as it is a message), ``MAV_CMD_SET_MESSAGE_INTERVAL``,
 ``MAV_CMD_GET_MESSAGE_INTERVAL`` and ``MAV_CMD_REQUEST_MESSAGE`` (each ACKed; FAILED for a
-message it does not have; ``AUTOPILOT_VERSION`` on request, as a ground station identifies it); HEARTBEAT base_mode with ``GUIDED_ENABLED`` in the autopilot
-modes (GUIDED, AUTO, RTL, SMART_RTL, LOITER), ``MANUAL_INPUT_ENABLED`` in MANUAL, ACRO and
-STEERING, ``SAFETY_ARMED`` when armed; system status CRITICAL in a failsafe, STANDBY in
-HOLD, ACTIVE otherwise (``vehicle_system_status``). ``SET_POSITION_TARGET_LOCAL_NED`` is read
+message it does not have), ``AUTOPILOT_VERSION`` on request (how a ground station identifies
+it); HEARTBEAT base_mode with ``GUIDED_ENABLED`` in the autopilot modes (GUIDED, AUTO, RTL,
+SMART_RTL, LOITER), ``MANUAL_INPUT_ENABLED`` in MANUAL, ACRO and STEERING, ``SAFETY_ARMED``
+when armed; system status CRITICAL in a failsafe, STANDBY in HOLD, ACTIVE otherwise (``vehicle_system_status``). ``SET_POSITION_TARGET_LOCAL_NED`` is read
 as ``handle_set_position_target_local_ned`` does, with Rover's ``defines.h`` masks (any bit of
 a group set ignores the group: position x|y, velocity vx|vy, acceleration ax|ay, yaw, yaw
 rate): frames LOCAL_NED (from the EKF origin), LOCAL_OFFSET_NED, BODY_NED, BODY_OFFSET_NED;
@@ -518,17 +518,21 @@ its old name: (lat, lon)). ``origin_at_boot``: the EKF origin is where the rover
         self._enc.send(self._enc.statustext_encode(severity, text.encode()[:50]))
         _count(self.counters, "statustext")
 
+    def _send_autopilot_version(self) -> None:
+        """AUTOPILOT_VERSION as ``GCS_MAVLINK::send_autopilot_version``: capabilities, firmware, a uid."""
+        major, minor, patch = FIRMWARE
+        uid = f"SIMROVER{self.system:03d}".encode()
+        self._enc.send(self._enc.autopilot_version_encode(
+            CAPABILITIES, major << 24 | minor << 16 | patch << 8 | 255, 0, 0, 0, bytes(8), bytes(8), bytes(8),
+            0, 0, int.from_bytes(uid[:8], "little"), uid.ljust(18, b"\0")))
+        _count(self.counters, "autopilot_version")
+
     def _send_once(self, msg_id: int, t: float) -> None:
         """One message on request (MAV_CMD_REQUEST_MESSAGE, a new origin)."""
         if msg_id == mav.MAVLINK_MSG_ID_HEARTBEAT:
             return self._send_heartbeat()
-        if msg_id == mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION:  # GCS_MAVLINK::send_autopilot_version
-            major, minor, patch = FIRMWARE
-            uid = f"SIMROVER{self.system:03d}".encode()
-            self._enc.send(self._enc.autopilot_version_encode(
-                CAPABILITIES, major << 24 | minor << 16 | patch << 8 | 255, 0, 0, 0, bytes(8), bytes(8), bytes(8),
-                0, 0, int.from_bytes(uid[:8], "little"), uid.ljust(18, b"\0")))
-            return _count(self.counters, "autopilot_version")
+        if msg_id == mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
+            return self._send_autopilot_version()
         if msg_id == mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
             lat, lon, alt = self.origin
             self._enc.send(self._enc.gps_global_origin_encode(round(lat * 1e7), round(lon * 1e7), round(alt * 1e3),
