@@ -20,8 +20,9 @@ EXTRA1, EXTENDED_STATUS and ALL; no ACK, as it is a message), ``MAV_CMD_SET_MESS
 message it does not have), ``AUTOPILOT_VERSION`` on request (how a ground station identifies
 it); HEARTBEAT base_mode with ``GUIDED_ENABLED`` in the autopilot modes (GUIDED, AUTO, RTL,
 SMART_RTL, LOITER), ``MANUAL_INPUT_ENABLED`` in MANUAL, ACRO and STEERING, ``SAFETY_ARMED``
-when armed; system status CRITICAL in a failsafe, STANDBY in HOLD, ACTIVE otherwise (``vehicle_system_status``). ``SET_POSITION_TARGET_LOCAL_NED`` is read
-as ``handle_set_position_target_local_ned`` does, with Rover's ``defines.h`` masks (any bit of
+when armed; system status CRITICAL in a failsafe, STANDBY in HOLD, ACTIVE otherwise
+(``vehicle_system_status``). ``SET_POSITION_TARGET_LOCAL_NED`` is read as
+``handle_set_position_target_local_ned`` does, with Rover's ``defines.h`` masks (any bit of
 a group set ignores the group: position x|y, velocity vx|vy, acceleration ax|ay, yaw, yaw
 rate): frames LOCAL_NED (from the EKF origin), LOCAL_OFFSET_NED, BODY_NED, BODY_OFFSET_NED;
 acceleration not ignored -> rejected with a STATUSTEXT; a position -> drive there (stop
