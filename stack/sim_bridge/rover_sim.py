@@ -17,11 +17,12 @@ Ground-station traffic, as ArduPilot answers it (``GCS_MAVLINK`` / ``Rover/GCS_M
 telemetry only when asked, by ``REQUEST_DATA_STREAM`` (the stream groups POSITION,
 EXTRA1, EXTENDED_STATUS and ALL; no ACK, as it is a message), ``MAV_CMD_SET_MESSAGE_INTERVAL``,
 ``MAV_CMD_GET_MESSAGE_INTERVAL`` and ``MAV_CMD_REQUEST_MESSAGE`` (each ACKed; FAILED for a
-message it does not have); HEARTBEAT base_mode with ``GUIDED_ENABLED`` in the autopilot
-modes (GUIDED, AUTO, RTL, SMART_RTL, LOITER), ``MANUAL_INPUT_ENABLED`` in MANUAL, ACRO and
-STEERING, ``SAFETY_ARMED`` when armed; system status CRITICAL in a failsafe, STANDBY in
-HOLD, ACTIVE otherwise (``vehicle_system_status``). ``SET_POSITION_TARGET_LOCAL_NED`` is read
-as ``handle_set_position_target_local_ned`` does, with Rover's ``defines.h`` masks (any bit of
+message it does not have), ``AUTOPILOT_VERSION`` on request (how a ground station identifies
+it); HEARTBEAT base_mode with ``GUIDED_ENABLED`` in the autopilot modes (GUIDED, AUTO, RTL,
+SMART_RTL, LOITER), ``MANUAL_INPUT_ENABLED`` in MANUAL, ACRO and STEERING, ``SAFETY_ARMED``
+when armed; system status CRITICAL in a failsafe, STANDBY in HOLD, ACTIVE otherwise
+(``vehicle_system_status``). ``SET_POSITION_TARGET_LOCAL_NED`` is read as
+``handle_set_position_target_local_ned`` does, with Rover's ``defines.h`` masks (any bit of
 a group set ignores the group: position x|y, velocity vx|vy, acceleration ax|ay, yaw, yaw
 rate): frames LOCAL_NED (from the EKF origin), LOCAL_OFFSET_NED, BODY_NED, BODY_OFFSET_NED;
 acceleration not ignored -> rejected with a STATUSTEXT; a position -> drive there (stop
@@ -75,13 +76,19 @@ from ..drivers.mavlink import (MODE_GUIDED, MODE_HOLD, ROVER_MODES, mode_name, m
 STREAMS = {mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: "LOCAL_POSITION_NED", mav.MAVLINK_MSG_ID_ATTITUDE: "ATTITUDE",
            mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: "GLOBAL_POSITION_INT", mav.MAVLINK_MSG_ID_SYS_STATUS: "SYS_STATUS"}
 """Message ids the rover streams when asked (MAV_CMD_SET_MESSAGE_INTERVAL, REQUEST_DATA_STREAM)."""
-ONCE = {**STREAMS, mav.MAVLINK_MSG_ID_HEARTBEAT: "HEARTBEAT", mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN: "GPS_GLOBAL_ORIGIN"}
+ONCE = {**STREAMS, mav.MAVLINK_MSG_ID_HEARTBEAT: "HEARTBEAT", mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN: "GPS_GLOBAL_ORIGIN",
+        mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION: "AUTOPILOT_VERSION"}
 """Message ids it sends once on MAV_CMD_REQUEST_MESSAGE."""
 DATA_STREAMS = {mav.MAV_DATA_STREAM_EXTENDED_STATUS: (mav.MAVLINK_MSG_ID_SYS_STATUS,),
                 mav.MAV_DATA_STREAM_POSITION: (mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
                                                mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED),
                 mav.MAV_DATA_STREAM_EXTRA1: (mav.MAVLINK_MSG_ID_ATTITUDE,)}
 """REQUEST_DATA_STREAM groups (ArduPilot's stream contents, restricted to the messages it has)."""
+FIRMWARE = (4, 5, 7)
+"""Rover firmware (major, minor, patch) in AUTOPILOT_VERSION (an official release: type 255)."""
+CAPABILITIES = (mav.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | mav.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
+                | mav.MAV_PROTOCOL_CAPABILITY_COMMAND_INT | mav.MAV_PROTOCOL_CAPABILITY_MISSION_INT)
+"""AUTOPILOT_VERSION capabilities: the subset of ArduPilot's ``GCS_MAVLINK::capabilities()`` this rover has."""
 MAX_STREAM_HZ = 50.0  # ArduPilot caps a stream at its main loop rate; Rover runs at 50 Hz
 
 AUTOPILOT_MODES = {ROVER_MODES[m] for m in ("GUIDED", "AUTO", "RTL", "SMART_RTL", "LOITER", "FOLLOW", "DOCK")
@@ -512,10 +519,21 @@ its old name: (lat, lon)). ``origin_at_boot``: the EKF origin is where the rover
         self._enc.send(self._enc.statustext_encode(severity, text.encode()[:50]))
         _count(self.counters, "statustext")
 
+    def _send_autopilot_version(self) -> None:
+        """AUTOPILOT_VERSION as ``GCS_MAVLINK::send_autopilot_version``: capabilities, firmware, a uid."""
+        major, minor, patch = FIRMWARE
+        uid = f"SIMROVER{self.system:03d}".encode()
+        self._enc.send(self._enc.autopilot_version_encode(
+            CAPABILITIES, major << 24 | minor << 16 | patch << 8 | 255, 0, 0, 0, bytes(8), bytes(8), bytes(8),
+            0, 0, int.from_bytes(uid[:8], "little"), uid.ljust(18, b"\0")))
+        _count(self.counters, "autopilot_version")
+
     def _send_once(self, msg_id: int, t: float) -> None:
         """One message on request (MAV_CMD_REQUEST_MESSAGE, a new origin)."""
         if msg_id == mav.MAVLINK_MSG_ID_HEARTBEAT:
             return self._send_heartbeat()
+        if msg_id == mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
+            return self._send_autopilot_version()
         if msg_id == mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
             lat, lon, alt = self.origin
             self._enc.send(self._enc.gps_global_origin_encode(round(lat * 1e7), round(lon * 1e7), round(alt * 1e3),
