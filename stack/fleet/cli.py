@@ -265,7 +265,12 @@ def _summary(rep: dict, out: Path, code: int) -> None:
 
 
 def main() -> None:
-    sys.exit(cli())
+    try:
+        code = cli()
+    except BrokenPipeError:  # stdout closed early (``| head``): the run itself ended as it should
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        code = 1
+    sys.exit(code)
 
 
 if __name__ == "__main__":
