@@ -221,24 +221,25 @@ def test_a_state_claiming_a_teleport_is_rejected(running_fleet, monkeypatch):
     and rejected. The judgement is recorded where the agent makes it: the kept state goes stale
     (3 s of simulated time) within a few tens of ms of lock-step, too soon to read it afterwards."""
     agent, world, s, errors = running_fleet
-    before = agent.rejected_states
+    pipeline = agent.pipeline  # the control step (stack/agents/step.py) judges neighbours' states
+    before = pipeline.counters.rejected_states
     judged = []
-    plausible = agent._plausible
+    plausible = pipeline._plausible
 
     def spy(old, m):
         ok = plausible(old, m)
         judged.append((old.x, m.x, ok))
         return ok
 
-    monkeypatch.setattr(agent, "_plausible", spy)
+    monkeypatch.setattr(pipeline, "_plausible", spy)
     pose, t0 = agent.estimator.pose, agent.sim_now
     for i, dx in enumerate((1.0, 1.05, 8.0)):  # then 7 m in 0.1 s from a robot that drives 1 m/s at most
         st_ = dict(VALID[State]) | {"seq": 100 + i, "step": 0, "stamp": t0 + 0.1 * i, "x": pose.x + dx, "y": pose.y}
         s.put(f"stack/{FLEET}/7/state", msgpack.packb(st_), congestion_control=zenoh.CongestionControl.BLOCK)
     deadline = time.monotonic() + 5
-    while agent.rejected_states == before and time.monotonic() < deadline:
+    while pipeline.counters.rejected_states == before and time.monotonic() < deadline:
         time.sleep(0.01)
-    assert agent.rejected_states == before + 1
+    assert pipeline.counters.rejected_states == before + 1
     x1, x2, x3 = pose.x + 1.0, pose.x + 1.05, pose.x + 8.0
     assert judged[-2:] == [(x1, x2, True), (x2, x3, False)], judged  # the plausible one was kept, the jump dropped
     assert not errors
