@@ -8,7 +8,8 @@ vehicle's own estimate (the driver's ``position_std``), before the telemetry due
 The rover accelerates like the robot's simulated base (``base.wheel_accel`` x wheel radius).
 
 Its settings (``RoverDeviceConfig``, the robot's ``device:``): ``datum`` places the site on
-the globe for GLOBAL_POSITION_INT (both modes); hardware-like (``ideal: false``) the EKF
+the globe for GLOBAL_POSITION_INT (both modes; the world passes the scenario's ``site.datum``);
+hardware-like (``ideal: false``, the default) the EKF
 origin is where the rover booted (``ekf_origin: boot``, as ArduPilot sets it at its first GPS
 fix), so LOCAL_POSITION_NED is relative to that, not to the site origin; ``SET_GPS_GLOBAL_ORIGIN``
 moves it in either mode.
