@@ -350,16 +350,18 @@ class Agent:
 
     def _take_odometry(self, k: int, t: float, n_device: int | None) -> tuple[OdomSample, ...]:
         """Lock-step (caller holds the lock): a step-carrying driver's samples up to step k at their own sim
-        time; a device's newest ``n_device`` samples at the step's time, older ones dropped (strays)."""
+        time; a device's newest ``n_device`` samples spread evenly over the step just ended (the newest at its
+        end: a 100 Hz encoder's ten samples each predict over their own 10 ms), older ones dropped (strays)."""
         q = self._in.odometry
         if self.driver.answers_steps:
             items = [e for e in q if e[0].step <= k]
             rest = [e for e in q if e[0].step > k]
             times = [e[0].stamp for e in items]
-        else:
+        else:  # a device's samples of the step just ended: spread over it at their rate, the newest at t
             items = list(q)[len(q) - min(n_device or 0, len(q)):]
             rest = []
-            times = [t] * len(items)
+            n = len(items)
+            times = [t - self.dt * (n - 1 - i) / n for i in range(n)]
         q.clear()
         q.extend(rest)
         return tuple(_sample(odo, fix, ts) for (odo, fix, _), ts in zip(items, times))
