@@ -4,18 +4,21 @@ Each driver talks to the device the world hosts for it (``stack.sim_bridge.devic
 own wall-clock thread as during a real-time run: ``sim`` through a Zenoh router to a world-side
 subscriber, ``can`` over python-can's slcan on a pseudo-terminal to the simulated ODrive pair,
 ``mavlink`` over UDP loopback to the simulated rover, ``jackal`` as ROS 2 Twist CDR over Zenoh
-to the simulated bridged Jackal. The clock stops when the device holds the new setpoint (the
+to the simulated Jackal on both of its transports: as zenoh-bridge-ros2dds shows a robot
+(``bridge``), and as a robot running rmw_zenoh_cpp (``rmw_zenoh``: rmw_zenoh's keys, an
+attachment written and checked on every sample, graph tokens). The clock stops when the device holds the new setpoint (the
 ODrive's input_vel, the rover's GUIDED target, the Jackal controller's cmd_vel); the
 actuators' ramps start from there on the device's next tick (1 ms for ODrive and rover; the
 Jackal's 50 Hz controller adds up to 20 ms on a real robot, and our world hands it commands
 once per world step).
 
-    python bench/driver_latency.py [--n 200]
+    python bench/driver_latency.py [--n 200] [--driver jackal ...]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import statistics
 import sys
 import tempfile
@@ -53,8 +56,11 @@ def measure(drv, setpoint, n: int) -> list[float]:
     return out
 
 
-def bench(name: str, n: int, agent, world, keys: Keys, run_dir: Path) -> list[float]:
+def bench(name: str, n: int, agent, world, keys: Keys, run_dir: Path, transport: str | None = None) -> list[float]:
     robot = with_overrides(load_scenario(ROOT / "scenarios" / "four-robot-diamond.yaml"), driver=name).robot(0)
+    if transport is not None:  # the jackal's: driver and device both read it from the robot's settings
+        params = dict(robot.driver_params) | {name: dict(robot.driver_params.get(name, {})) | {"transport": transport}}
+        robot = dataclasses.replace(robot, driver_params=params)
     limits = DriverLimits(robot.v_max, robot.w_max, robot.cmd_timeout)
     if name == "sim":  # the world's side of cmd_vel
         last = {}
@@ -98,21 +104,32 @@ def bench(name: str, n: int, agent, world, keys: Keys, run_dir: Path) -> list[fl
         dev.close()
 
 
+RUNS = [("sim", None, "Zenoh cmd_vel via a loopback router"),
+        ("can", None, "python-can slcan on a pty (Set_Input_Vel x2)"),
+        ("mavlink", None, "UDP loopback (SET_POSITION_TARGET_LOCAL_NED)"),
+        ("jackal", "bridge", "Zenoh, ROS 2 Twist CDR via a router (zenoh-bridge-ros2dds keys)"),
+        ("jackal", "rmw_zenoh", "Zenoh, ROS 2 Twist CDR + attachment via a router (rmw_zenoh keys)")]
+"""(driver, jackal transport or None, what goes over the wire)"""
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=200, help="commands per driver (default %(default)s)")
+    ap.add_argument("--driver", action="append", choices=sorted({d for d, _, _ in RUNS}),
+                    help="only this driver (repeatable; jackal runs on both transports); default all")
     a = ap.parse_args()
     ep = free_tcp_endpoint()
     keys = Keys("latency")
     print(f"| driver | wire | median [ms] | p95 [ms] | p99 [ms] | max [ms] | n |\n| --- | --- | ---: | ---: | ---: | ---: | ---: |")
-    wires = {"sim": "Zenoh cmd_vel via a loopback router", "can": "python-can slcan on a pty (Set_Input_Vel x2)",
-             "mavlink": "UDP loopback (SET_POSITION_TARGET_LOCAL_NED)", "jackal": "Zenoh, ROS 2 Twist CDR via a router"}
     with tempfile.TemporaryDirectory() as tmp, open_session(SessionConfig(mode="router", listen=[ep])), \
             open_session(SessionConfig(connect=[ep])) as agent, open_session(SessionConfig(connect=[ep])) as world:
-        for name in ("sim", "can", "mavlink", "jackal"):
-            lat = sorted(x * 1e3 for x in bench(name, a.n, agent, world, keys, Path(tmp)))
+        for name, transport, wire in RUNS:
+            if a.driver and name not in a.driver:
+                continue
+            lat = sorted(x * 1e3 for x in bench(name, a.n, agent, world, keys, Path(tmp), transport))
             q = lambda p: lat[min(len(lat) - 1, int(p * len(lat)))]  # noqa: E731
-            print(f"| {name} | {wires[name]} | {statistics.median(lat):.2f} | {q(0.95):.2f} | {q(0.99):.2f} | "
+            label = name if transport is None else f"{name} ({transport})"
+            print(f"| {label} | {wire} | {statistics.median(lat):.2f} | {q(0.95):.2f} | {q(0.99):.2f} | "
                   f"{lat[-1]:.2f} | {len(lat)} |", flush=True)
     return 0
 

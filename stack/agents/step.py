@@ -147,7 +147,7 @@ class StepPipeline:
         self.pid = make_policy("pid", replace(robot, role=self.role))  # situation 1 of the hybrid strategy
         self.decision = DecisionLayer(robot_id, self.role, scenario.formation, goal=robot.goal, radius=robot.radius,
                                       comm_range=robot.comm_range, scan_range=robot.lidar.range, dt=scenario.dt,
-                                      centre_heading=self.policy.hybrid and self.policy_name != "pid")
+                                      centre_heading=self.policy.hybrid and self.policy_name != "pid", fov=robot.lidar.fov)
         self.neighbours: dict[int, Neighbour] = {}
         self.scans: deque[np.ndarray] = deque(maxlen=N_SCANS)
         self.gone: set[int] = set()
@@ -173,7 +173,7 @@ class StepPipeline:
             dec = self._decide(inp, pose)
             situation, obs = dec.situation, dec.obs
             if dec.obs is not None and stale is None:
-                v, w = self._act(dec)
+                v, w = self._act(dec, inp.t_run)
         d_goal = float(obs.d_g) if situation == "peer" and obs is not None else None
         return StepOutput(v=v, w=w, pose=pose, situation=situation, cov_trace=self.estimator.cov_trace,
                           d_goal=d_goal, stale=stale)
@@ -272,11 +272,11 @@ class StepPipeline:
             self._take_role(self.decision.role, inp.t_run)
         return dec
 
-    def _act(self, dec) -> tuple[float, float]:
+    def _act(self, dec, t_run: float) -> tuple[float, float]:
         v, w = (self.policy if dec.use_network or not self.policy.hybrid else self.pid).act(dec.obs)
-        if self.role == "leader" and self.policy.hybrid:
-            v = DecisionLayer.leader_speed(v, dec.d_rmax, self.sc.formation.d_leader_slow,  # eq. (20)
-                                           self.policy.leader_hold, self.robot.comm_range)
+        if self.role == "leader" and self.policy.hybrid:  # eq. (20), and a connectivity hold that gives up in time
+            v = self.decision.hold_speed(v, dec.d_rmax, t_run, self.sc.formation.d_leader_slow,
+                                         self.policy.leader_hold, self.robot.comm_range)
         return v, w
 
     def _take_role(self, role: str, t_run: float) -> None:

@@ -214,6 +214,7 @@ class Diag(_Msg):
     shield_masked: int | None = None  # --policy drl: steps at which the action shield overruled the network
     links: dict[int, dict[str, int]] | None = None  # sender id -> {delivered, dropped_range, dropped_loss}, cumulative
     # (RadioModel.links()): the comm graph a recorder draws; None from senders that do not count per link
+    stuck: dict | None = None  # stuck episodes, what resolved them, the leader hold's give-ups (stack.agents.livelock)
 
 
 _ENCODER = msgspec.msgpack.Encoder()

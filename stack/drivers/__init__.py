@@ -19,7 +19,7 @@ DRIVERS = Registry("drivers", [
     Plugin("mavlink", "stack.drivers.mavlink:MavlinkConfig", "stack.drivers.mavlink:MavlinkDriver",
            device="stack.sim_bridge.devices_mavlink:RoverDevice", summary="ArduPilot Rover over MAVLink (pymavlink)"),
     Plugin("jackal", "stack.drivers.jackal:JackalConfig", "stack.drivers.jackal:JackalDriver",
-           device="stack.sim_bridge.jackal_sim:JackalDevice", summary="ROS 2 Jackal behind zenoh-bridge-ros2dds (CDR)"),
+           device="stack.sim_bridge.jackal_sim:JackalDevice", summary="ROS 2 Jackal over Zenoh: zenoh-bridge-ros2dds or rmw_zenoh (CDR)"),
 ])
 BACKENDS = DRIVERS  # python-can's name for it
 

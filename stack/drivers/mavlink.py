@@ -3,17 +3,31 @@
 We are a companion computer / GCS on the vehicle's link (UDP, TCP or a serial port). Opening
 sends our 1 Hz GCS ``HEARTBEAT`` (the rover's FS_GCS failsafe listens for it), waits for the
 vehicle's (``MAV_TYPE_GROUND_ROVER``), switches it to GUIDED (``MAV_CMD_DO_SET_MODE``), asks
-for ``LOCAL_POSITION_NED`` and ``ATTITUDE`` at the configured rates
-(``MAV_CMD_SET_MESSAGE_INTERVAL``) and arms it (``MAV_CMD_COMPONENT_ARM_DISARM``), each step
-checked by its ``COMMAND_ACK`` and the mode and arming by the vehicle's heartbeat. A refusal
+for ``LOCAL_POSITION_NED`` and ``ATTITUDE`` (and ``GLOBAL_POSITION_INT`` with a ``datum``) at the
+configured rates (``MAV_CMD_SET_MESSAGE_INTERVAL``) and arms it (``MAV_CMD_COMPONENT_ARM_DISARM``),
+each step checked by its ``COMMAND_ACK`` and the mode and arming by the vehicle's heartbeat. A refusal
 raises ``DriverError`` naming what was refused and the ``MAV_RESULT``.
 
 A command becomes one ``SET_POSITION_TARGET_LOCAL_NED`` in ``MAV_FRAME_BODY_NED`` with type
 mask 1511 (forward velocity + yaw rate): ``vx = v``, ``yaw_rate = -w`` (NED turns clockwise,
 our ``w`` counter-clockwise); the last one is resent every ``keepalive_period`` (the rover
 stops 3 s after its last target). ``read()`` turns the newest ``LOCAL_POSITION_NED`` +
-``ATTITUDE`` pair into body speeds (and the vehicle's pose); ``position_fix()`` gives the vehicle's own position
-estimate in our world frame, for the agent's estimator.
+``ATTITUDE`` pair into body speeds and the vehicle's pose; ``position_fix()`` gives the vehicle's own position
+estimate, for the agent's estimator.
+
+Frames of position. ArduPilot's ``LOCAL_POSITION_NED`` is relative to the vehicle's own EKF
+origin, which each vehicle sets for itself (at its first GPS fix, or by
+``SET_GPS_GLOBAL_ORIGIN``): it is the device's odometry frame, and ``read().pose`` stays in
+it (the agent maps it into the site frame). With a ``datum`` (the scenario's ``site.datum``:
+the site frame's origin on WGS 84) ``position_fix()`` is the vehicle's ``GLOBAL_POSITION_INT``
+on the datum's local tangent plane (``stack.models.geodesy``): the site frame, so rovers
+whose EKF origins differ agree on where they are; before the first one (or while the vehicle
+has no position: lat = lon = 0, counted ``no_global_fix``) it is None. ``set_ekf_origin`` also
+moves the vehicle's EKF origin to the datum on opening (``SET_GPS_GLOBAL_ORIGIN``, confirmed by
+its ``GPS_GLOBAL_ORIGIN``; a vehicle that keeps its own origin is a warning, counted
+``origin_refused``, as the fixes do not depend on it). Without a datum ``position_fix()`` is
+``LOCAL_POSITION_NED``, as it always was: in the site frame only where the EKF origin is the
+site origin.
 
 A fault (the vehicle's heartbeat missing for ``heartbeat_timeout``, the vehicle leaving
 GUIDED, the vehicle disarmed) sends a zero target and sets ``fault`` to a one-line reason;
@@ -23,8 +37,8 @@ someone else took the vehicle out of GUIDED (a pilot's MANUAL): we give back onl
 Malformed or foreign traffic (garbage bytes, a bad CRC, unknown message ids, other system
 ids) is counted in ``counters`` and ignored; nothing raises. Supervision (our heartbeat, the
 keepalive, the vehicle's heartbeat timeout, the fault latch, ``counters``, ``liveness()``:
-``heartbeat``, ``local_position``, ``attitude``, ``odom``) is the base class's, and its one
-thread also receives (``_poll``).
+``heartbeat``, ``local_position``, ``attitude``, ``odom``, with a datum ``global_position``) is the
+base class's, and its one thread also receives (``_poll``).
 
 Frames: NED (x north, y east, yaw clockwise from north) <-> our world (x east, y north, yaw
 counter-clockwise from east): ``ned_to_world`` / ``world_to_ned``, the only copy of it
@@ -46,6 +60,7 @@ from typing import Any, Callable
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
+from ..models.geodesy import Datum, check_datum, geodetic_to_site
 from ..models.geometry import wrap as wrap_angle  # the one angle wrap, (-pi, pi]
 from .base import Driver, DriverError, DriverLimits, Keepalive, Odometry
 
@@ -67,9 +82,15 @@ YAW_RATE_IGNORE = _IGNORE["YAW_RATE"]
 VX_IGNORE = _IGNORE["VX"]
 POSITION_IGNORE = _IGNORE["X"] | _IGNORE["Y"] | _IGNORE["Z"]
 
-TELEMETRY = {"LOCAL_POSITION_NED": mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, "ATTITUDE": mav.MAVLINK_MSG_ID_ATTITUDE}
+TELEMETRY = {"LOCAL_POSITION_NED": mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, "ATTITUDE": mav.MAVLINK_MSG_ID_ATTITUDE,
+             "GLOBAL_POSITION_INT": mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT}
 
 _LINK_PREFIXES = ("udpin:", "udpout:", "udp:", "tcp:", "tcpin:")
+
+
+def origin_e7(origin: Datum) -> tuple[int, int, int]:
+    """(lat, lon, alt) -> GPS_GLOBAL_ORIGIN's fields: degE7, degE7, mm."""
+    return round(origin[0] * 1e7), round(origin[1] * 1e7), round(origin[2] * 1e3)
 
 
 def mode_name(custom_mode: int) -> str:
@@ -158,11 +179,21 @@ class MavlinkConfig:
     keepalive_period: float = 0.25
     """[s] the last target is resent this often (the rover stops 3 s after its last target)."""
     position_rate: float = 10.0
-    """[Hz] requested rate of LOCAL_POSITION_NED (forward speed, position fix)."""
+    """[Hz] requested rate of LOCAL_POSITION_NED (forward speed, odometry pose) and, with a datum, of
+    GLOBAL_POSITION_INT (position fix)."""
     attitude_rate: float = 10.0
     """[Hz] requested rate of ATTITUDE (heading, yaw rate)."""
     position_std: float = 0.3
-    """[m] standard deviation of the vehicle's own position estimate (LOCAL_POSITION_NED), for the agent's estimator."""
+    """[m] standard deviation of the vehicle's own position estimate (its EKF's, from its GNSS), for the agent's
+    estimator: GLOBAL_POSITION_INT's with a datum, LOCAL_POSITION_NED's without (the same estimate; the 1e-7 deg of
+    GLOBAL_POSITION_INT are 1.1 cm, well inside it). 0.3 m: a good GNSS receiver with SBAS; say 0.02 for RTK fixed."""
+    datum: tuple[float, float, float] | None = None
+    """(lat [deg], lon [deg], alt [m]) of the site frame's origin (the scenario's ``site.datum``): the vehicle is then
+    placed by GLOBAL_POSITION_INT (asked for at ``position_rate``) on the datum's WGS 84 tangent plane, x east,
+    y north. None: position fixes are LOCAL_POSITION_NED, relative to the vehicle's own EKF origin."""
+    set_ekf_origin: bool = False
+    """With a datum: set the vehicle's EKF origin to it on opening (SET_GPS_GLOBAL_ORIGIN), so LOCAL_POSITION_NED
+    (odometry) is in the site frame too. ArduPilot keeps an origin its EKF already uses: then a warning."""
 
     def __post_init__(self):
         c = self.connection
@@ -180,6 +211,15 @@ class MavlinkConfig:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"mavlink driver: {name} must be a positive number, not {value!r}")
+        if self.datum is not None:
+            try:
+                object.__setattr__(self, "datum", check_datum(self.datum))
+            except ValueError as e:
+                raise ValueError(f"mavlink driver: {e}") from None
+        if not isinstance(self.set_ekf_origin, bool):
+            raise ValueError(f"mavlink driver: set_ekf_origin must be true or false, not {self.set_ekf_origin!r}")
+        if self.set_ekf_origin and self.datum is None:
+            raise ValueError("mavlink driver: set_ekf_origin needs a datum (the site's [lat_deg, lon_deg, alt_m])")
         if self.keepalive_period > 1.0:
             raise ValueError("mavlink driver: keepalive_period must be <= 1 s (the rover stops 3 s after its last target)")
 
@@ -227,6 +267,7 @@ class MavlinkDriver(Driver):
         self._pos_fresh = self._att_fresh = False
         self._latest: Odometry | None = None
         self._fix: tuple[float, float, float, float] | None = None
+        self._origin: Datum | None = None  # the vehicle's EKF origin, from its newest GPS_GLOBAL_ORIGIN
         self._taken_over = False  # someone else took the vehicle out of GUIDED (or disarmed it)
         self._boot = time.monotonic()
 
@@ -266,13 +307,36 @@ class MavlinkDriver(Driver):
         self._wait_state(lambda: self._custom_mode == MODE_GUIDED, cfg.mode_timeout,
                          lambda: f"mode GUIDED not confirmed: the vehicle's heartbeat still shows "
                                  f"{self.vehicle_mode} {cfg.mode_timeout:g} s after MAV_RESULT_ACCEPTED")
-        for name, rate in (("LOCAL_POSITION_NED", cfg.position_rate), ("ATTITUDE", cfg.attitude_rate)):
+        if cfg.set_ekf_origin:
+            self._set_origin()
+        streams = [("LOCAL_POSITION_NED", cfg.position_rate), ("ATTITUDE", cfg.attitude_rate)]
+        if cfg.datum is not None:
+            streams.append(("GLOBAL_POSITION_INT", cfg.position_rate))
+        for name, rate in streams:
             self._command(f"message interval for {name}", mav.MAV_CMD_SET_MESSAGE_INTERVAL, TELEMETRY[name], 1e6 / rate)
         self._command("arming", mav.MAV_CMD_COMPONENT_ARM_DISARM, 1)
         self._wait_state(self._is_armed, cfg.arm_timeout,
                          lambda: f"arming not confirmed: the vehicle's heartbeat shows it disarmed "
                                  f"{cfg.arm_timeout:g} s after MAV_RESULT_ACCEPTED")
         self._alive("heartbeat")  # the heartbeat timeout counts from here
+
+    def _set_origin(self) -> None:
+        """SET_GPS_GLOBAL_ORIGIN at the datum (a message: no ACK), resent until the vehicle's GPS_GLOBAL_ORIGIN says
+        so; a vehicle that keeps its own origin is a warning (the fixes come from GLOBAL_POSITION_INT anyway)."""
+        cfg = self.config
+        want = origin_e7(cfg.datum)
+        for _ in range(1 + cfg.command_retries):
+            self._tx(self._encoder().set_gps_global_origin_encode(cfg.target_system, *want,
+                                                                  max(0, int(self._stamp() * 1e6))))
+            with self._state:
+                if self._state.wait_for(lambda: self._origin is not None and origin_e7(self._origin) == want,
+                                        cfg.ack_timeout):
+                    self.count("origin_set")
+                    return
+        self.count("origin_refused")
+        log.warning("mavlink driver %s: the vehicle kept its EKF origin %s (asked for the datum %s): LOCAL_POSITION_NED "
+                    "stays relative to it; position fixes are GLOBAL_POSITION_INT around the datum", self.robot_id,
+                    self.ekf_origin or "(not reported)", cfg.datum)
 
     def _wait_heartbeat(self) -> None:
         cfg = self.config
@@ -451,7 +515,8 @@ class MavlinkDriver(Driver):
         if m.get_srcComponent() != cfg.target_component:
             return self.count("other_component")  # a camera, a gimbal: not ours to follow
         handler = {"HEARTBEAT": self._on_heartbeat, "COMMAND_ACK": self._on_ack,
-                   "LOCAL_POSITION_NED": self._on_position, "ATTITUDE": self._on_attitude}.get(kind)
+                   "LOCAL_POSITION_NED": self._on_position, "ATTITUDE": self._on_attitude,
+                   "GLOBAL_POSITION_INT": self._on_global, "GPS_GLOBAL_ORIGIN": self._on_origin}.get(kind)
         if handler is None:
             return self.count("ignored")
         handler(m)
@@ -497,6 +562,29 @@ class MavlinkDriver(Driver):
         self.count("local_position")
         self._odometry()
 
+    def _on_global(self, m: Any) -> None:
+        """GLOBAL_POSITION_INT (with a datum): the site-frame position fix, on the datum's tangent plane."""
+        datum = self.config.datum
+        if datum is None:
+            return self.count("ignored")
+        lat, lon, alt = m.lat * 1e-7, m.lon * 1e-7, m.alt * 1e-3
+        if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
+            return self.count("bad_value", malformed=True)
+        if m.lat == 0 and m.lon == 0:  # ArduPilot's "no position estimate yet"
+            return self.count("no_global_fix")
+        x, y = geodetic_to_site(datum, lat, lon, alt)
+        with self._state:
+            self._fix = (x, y, self.config.position_std, self._stamp())
+        self._alive("global_position")
+        self.count("global_position")
+
+    def _on_origin(self, m: Any) -> None:
+        """GPS_GLOBAL_ORIGIN: where the vehicle's LOCAL_POSITION_NED is from."""
+        with self._state:
+            self._origin = (m.latitude * 1e-7, m.longitude * 1e-7, m.altitude * 1e-3)
+            self._state.notify_all()
+        self.count("gps_global_origin")
+
     def _on_attitude(self, m: Any) -> None:
         if not all(math.isfinite(x) for x in (m.yaw, m.yawspeed)):
             return self.count("bad_value", malformed=True)
@@ -517,7 +605,8 @@ class MavlinkDriver(Driver):
             pose = ned_to_world(p.x, p.y, a.yaw)
             odo = self._latest = Odometry(v=forward_speed(p.vx, p.vy, a.yaw), w=yaw_rate_ned(a.yawspeed), stamp=stamp,
                                           pose=pose)
-            self._fix = (pose[0], pose[1], self.config.position_std, stamp)
+            if self.config.datum is None:  # with one, fixes are GLOBAL_POSITION_INT's (_on_global)
+                self._fix = (pose[0], pose[1], self.config.position_std, stamp)
         self._alive("odom")
         if self._on_odom is not None:
             self._on_odom(odo)
@@ -527,10 +616,16 @@ class MavlinkDriver(Driver):
             return self._latest
 
     def position_fix(self) -> tuple[float, float, float, float] | None:
-        """The vehicle's newest own position estimate in our world frame: (x, y, position_std, stamp), or None
-        before one (its heading is in ``read().pose``)."""
+        """The vehicle's newest own position estimate (x, y, position_std, stamp), or None before one: with a
+        datum its GLOBAL_POSITION_INT in the site frame; without, its LOCAL_POSITION_NED (from its EKF origin)."""
         with self._state:
             return self._fix
+
+    @property
+    def ekf_origin(self) -> Datum | None:
+        """(lat, lon, alt) of the vehicle's EKF origin from its newest GPS_GLOBAL_ORIGIN; None before one."""
+        with self._state:
+            return self._origin
 
     @property
     def vehicle_mode(self) -> str | None:
@@ -568,5 +663,5 @@ class MavlinkDriver(Driver):
 
 
 __all__ = ["MODE_GUIDED", "MODE_HOLD", "ROVER_MODES", "TYPE_MASK_VEL_YAW_RATE", "MavlinkConfig", "MavlinkDriver",
-           "forward_speed", "mode_name", "mode_number", "ned_to_world", "ned_velocity", "result_name", "world_to_ned",
-           "wrap_angle", "yaw_rate_ned"]
+           "forward_speed", "mode_name", "mode_number", "ned_to_world", "ned_velocity", "origin_e7", "result_name",
+           "world_to_ned", "wrap_angle", "yaw_rate_ned"]

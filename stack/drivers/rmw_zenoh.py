@@ -67,7 +67,8 @@ NODE, PUBLISHER, SUBSCRIPTION, SERVICE, CLIENT = "NN", "MP", "MS", "SS", "SC"
 GID_SIZE = 16
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 
-_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+"""A ROS 2 node name (one token)."""
 _TOPIC = re.compile(r"/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
 _NAMESPACE = re.compile(r"/|(/[A-Za-z_][A-Za-z0-9_]*)+")
 _ROS_TYPE = re.compile(r"([A-Za-z][A-Za-z0-9_]*)/msg/([A-Za-z][A-Za-z0-9_]*)")
@@ -413,7 +414,7 @@ class NodeConfig:
     """The SROS 2 enclave (``/`` without security)."""
 
     def __post_init__(self):
-        if not (isinstance(self.name, str) and _NAME.fullmatch(self.name)):
+        if not (isinstance(self.name, str) and NAME.fullmatch(self.name)):
             raise ValueError(f"rmw_zenoh node: name {self.name!r} is not a ROS 2 node name (letters, digits, '_')")
         for what in ("namespace", "enclave"):
             if not (isinstance(getattr(self, what), str) and _NAMESPACE.fullmatch(getattr(self, what))):
@@ -438,8 +439,11 @@ def _next_entity_id(zid: str) -> int:
 class RmwPublisher:
     """A publisher whose samples carry rmw_zenoh's attachment (sequence from 1, wall-clock ns, our GID)."""
 
-    def __init__(self, session: zenoh.Session, key: str, entity: GraphEntity):
+    def __init__(self, session: zenoh.Session, key: str, entity: GraphEntity, block: bool | None = None):
+        """``block``: wait when the link is congested rather than drop; None: as rmw_zenoh (only for KEEP_ALL).
+        Local only: it changes nothing on the wire."""
         qos = entity.qos or DEFAULT_QOS
+        block = qos.history == KEEP_ALL if block is None else block
         self.key, self.entity = key, entity
         self.gid = gid_of(entity.token())
         self._lock = threading.Lock()
@@ -447,8 +451,7 @@ class RmwPublisher:
         self._pub = session.declare_publisher(
             key, encoding=zenoh.Encoding.APPLICATION_CDR,
             reliability=zenoh.Reliability.RELIABLE if qos.reliability == RELIABLE else zenoh.Reliability.BEST_EFFORT,
-            congestion_control=(zenoh.CongestionControl.BLOCK if qos.history == KEEP_ALL
-                                else zenoh.CongestionControl.DROP))
+            congestion_control=zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP)
         self._token = session.liveliness().declare_token(entity.token())
 
     def put(self, payload: bytes) -> Attachment:
@@ -500,10 +503,10 @@ class RmwZenohNode:
                              type_hash=type_hash(ros_type, cfg.distro), qos=qos)
         return topic_key(cfg.domain_id, fq, ros_type, cfg.distro), entity
 
-    def publisher(self, topic: str, ros_type: str, qos: Qos = DEFAULT_QOS) -> RmwPublisher:
-        """A publisher on ``topic`` (relative to the namespace) with its ``MP`` token."""
+    def publisher(self, topic: str, ros_type: str, qos: Qos = DEFAULT_QOS, *, block: bool | None = None) -> RmwPublisher:
+        """A publisher on ``topic`` (relative to the namespace) with its ``MP`` token (``block``: RmwPublisher's)."""
         key, entity = self._endpoint(PUBLISHER, topic, ros_type, qos)
-        pub = RmwPublisher(self._session, key, entity)
+        pub = RmwPublisher(self._session, key, entity, block)
         self._declared.append(pub)
         return pub
 
@@ -563,6 +566,8 @@ class RmwZenohNode:
         while self._declared:
             self._declared.pop().undeclare()
 
+    undeclare = close  # so that a node sits with the publishers and subscribers a component undeclares
+
 
 class RosGraph:
     """The ROS graph as rmw_zenoh's graph cache sees it: liveliness tokens of one domain, parsed.
@@ -613,7 +618,7 @@ class RosGraph:
 
 
 __all__ = ["ADMIN_SPACE", "Attachment", "BEST_EFFORT", "CLIENT", "DEFAULT_QOS", "DISTROS", "GID_SIZE", "GraphEntity",
-           "HASH_NOT_SUPPORTED", "NODE", "NodeConfig", "POSE_STAMPED", "PUBLISHER", "PlanarPose", "Qos", "RELIABLE",
+           "HASH_NOT_SUPPORTED", "NAME", "NODE", "NodeConfig", "POSE_STAMPED", "PUBLISHER", "PlanarPose", "Qos", "RELIABLE",
            "RmwPublisher", "RmwZenohError", "RmwZenohNode", "RosGraph", "SENSOR_QOS", "SERVICE", "SUBSCRIPTION",
            "dds_type_name", "decode_pose_stamped", "demangle", "encode_pose_stamped", "fully_qualified", "gid_of",
            "mangle", "parse_token", "rihs01", "topic_key", "type_description", "type_hash"]

@@ -116,19 +116,8 @@ def parser() -> argparse.ArgumentParser:
     return ap
 
 
-def run_config(a: argparse.Namespace) -> FleetConfig:
-    sc = load_scenario(a.scenario)
-    sc = with_overrides(sc, policy=a.policy, driver=a.driver, loss=a.loss, latency_ms=a.latency_ms, seed=a.seed,
-                        duration=a.duration)
-    missing = sorted({r.policy for r in sc.robots} - set(available_policies()))
-    if missing:
-        raise ScenarioError(f"{a.scenario}: policy {', '.join(missing)} is not implemented yet (available: {', '.join(available_policies())})")
-    from ..sim_bridge.devices import hosted
-
-    hostable = sorted(set(hosted()) | {"sim"})
-    drivers = sorted({r.driver for r in sc.robots} - set(hostable))
-    if drivers:
-        raise ScenarioError(f"{a.scenario}: driver {', '.join(drivers)} is not implemented yet (available: {', '.join(hostable)})")
+def _faults(a: argparse.Namespace, sc) -> list[tuple[str, int, float]]:
+    """``--kill/--freeze/--restart`` as (kind, id, t), and ``--device-fault`` checked: robots that exist, times in the run."""
     ids = set(sc.ids)
     faults = []
     for kind in FAULT_KINDS:
@@ -144,6 +133,23 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
                                 f"(robots with one: {', '.join(str(r.id) for r in sc.robots if r.driver != 'sim') or 'none'})")
         if t > sc.duration:
             raise ScenarioError(f"--device-fault {rid}@{t:g}: after the run's end ({sc.duration:g} s)")
+    return faults
+
+
+def run_config(a: argparse.Namespace) -> FleetConfig:
+    sc = load_scenario(a.scenario)
+    sc = with_overrides(sc, policy=a.policy, driver=a.driver, loss=a.loss, latency_ms=a.latency_ms, seed=a.seed,
+                        duration=a.duration)
+    missing = sorted({r.policy for r in sc.robots} - set(available_policies()))
+    if missing:
+        raise ScenarioError(f"{a.scenario}: policy {', '.join(missing)} is not implemented yet (available: {', '.join(available_policies())})")
+    from ..sim_bridge.devices import hosted
+
+    hostable = sorted(set(hosted()) | {"sim"})
+    drivers = sorted({r.driver for r in sc.robots} - set(hostable))
+    if drivers:
+        raise ScenarioError(f"{a.scenario}: driver {', '.join(drivers)} is not implemented yet (available: {', '.join(hostable)})")
+    faults = _faults(a, sc)
     if a.listen:
         check_endpoint(a.listen)
         if not re.fullmatch(r"tcp/[^#?]+:\d+", a.listen):

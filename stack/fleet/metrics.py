@@ -191,7 +191,8 @@ def estimator_rmse(log: TruthLog, j: int, estimates: list[tuple[int, float, floa
 
 
 DIAG_FIELDS = ("fixes", "estimator_inputs_rejected", "sensor_stale_stops", "states_rejected", "driver_fault",
-               "neighbour_waits_timed_out", "device_odom_late", "scans_from_driver", "shield_masked", "led_since_s")
+               "neighbour_waits_timed_out", "device_odom_late", "scans_from_driver", "shield_masked", "led_since_s", "stuck",
+               "device_odom_strays", "odom_stale_stops", "lidar_stale_stops")
 
 
 def diag_fields(d) -> dict:
@@ -202,7 +203,9 @@ def diag_fields(d) -> dict:
             "estimator_inputs_rejected": d.inputs_rejected, "sensor_stale_stops": d.sensor_stale,
             "states_rejected": d.rejected_states, "driver_fault": d.fault or None,
             "neighbour_waits_timed_out": d.neighbour_waits_timed_out, "device_odom_late": d.device_odom_late,
-            "scans_from_driver": d.scans_from_driver, "shield_masked": d.shield_masked, "led_since_s": d.led_since}
+            "scans_from_driver": d.scans_from_driver, "shield_masked": d.shield_masked, "led_since_s": d.led_since,
+            "stuck": d.stuck, "device_odom_strays": d.device_odom_strays, "odom_stale_stops": d.odom_stale,
+            "lidar_stale_stops": d.lidar_stale}
 
 
 def robot_entry(sc: Scenario, log: TruthLog, tg: Targets, rid: int, diag, estimates: list) -> dict:
@@ -251,6 +254,28 @@ def success(sc: Scenario, log: TruthLog, leader_time: float | None, arrivals: li
         reached = all(a is not None and a <= max_time for a, alive in zip(arrivals, log.alive[-1]) if alive)
     collided = sum(hits.values()) > 0
     return bool(reached and not (sc.success.no_collisions and collided) and not crashed)
+
+
+# --- livelock ------------------------------------------------------------------------------------
+
+RESOLVED_BY = ("escape", "detour", "target", "gave_up")
+
+
+def livelock(diags: dict) -> dict | None:
+    """The agents' stuck detectors and leader holds summed up (``Diag.stuck``, see stack.agents.livelock):
+    stuck episodes, what resolved them, those still open at the end, the leader's hold give-ups with when
+    and why; None when no agent reported them (a policy or agent without the detector)."""
+    got = {rid: d.stuck for rid, d in diags.items() if getattr(d, "stuck", None)}
+    if not got:
+        return None
+    out = {"stuck_episodes": sum(int(s.get("episodes", 0)) for s in got.values()),
+           "resolved_by": {k: sum(int(s.get(k, 0)) for s in got.values()) for k in RESOLVED_BY},
+           "open_at_end": sum(int(s.get("open", 0)) for s in got.values()),
+           "hold_give_ups": sum(int(s.get("hold_give_ups", 0)) for s in got.values())}
+    out["hold_events"] = [{"leader": rid, **e} for rid, s in sorted(got.items()) for e in s.get("events", ())
+                          if str(e.get("event", "")).startswith("hold-gave-up")]
+    out["stuck_robots"] = sorted(rid for rid, s in got.items() if int(s.get("episodes", 0)) > 0)
+    return out
 
 
 # --- faults --------------------------------------------------------------------------------------

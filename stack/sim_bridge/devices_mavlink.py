@@ -8,10 +8,10 @@ vehicle's own estimate (the driver's ``position_std``), before the telemetry due
 The rover accelerates like the robot's simulated base (``base.wheel_accel`` x wheel radius).
 
 Its settings (``RoverDeviceConfig``, the robot's ``device:``): ``datum`` places the site on
-the globe for GLOBAL_POSITION_INT (both modes; the world passes the scenario's ``site.datum``);
-hardware-like (``ideal: false``, the default) the EKF
-origin is where the rover booted (``ekf_origin: boot``, as ArduPilot sets it at its first GPS
-fix), so LOCAL_POSITION_NED is relative to that, not to the site origin; ``SET_GPS_GLOBAL_ORIGIN``
+the globe for GLOBAL_POSITION_INT (both modes; default the scenario's ``site.datum``, which the
+world passes as ``site_datum``, else the driver's ``datum`` setting, else ArduPilot SITL's home);
+hardware-like (``ideal: false``, the default) the EKF origin is where the rover booted (``ekf_origin: boot``,
+as ArduPilot sets it at its first GPS fix), so LOCAL_POSITION_NED is relative to that, not to the site origin; ``SET_GPS_GLOBAL_ORIGIN``
 moves it in either mode.
 """
 
@@ -22,7 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..drivers.mavlink import MavlinkConfig
-from .devices import SIM_OPEN_TIMEOUT_S, Body, DeviceConfig, DeviceError, HostedDevice, check_choice, check_number
+from ..models.geodesy import Datum, check_datum
+from .devices import SIM_OPEN_TIMEOUT_S, Body, DeviceConfig, DeviceError, HostedDevice, check_choice
 from .rover_sim import SimRover
 
 
@@ -34,29 +35,30 @@ class RoverDeviceConfig(DeviceConfig):
     """``boot``: the EKF origin is where the rover booted (its start pose), LOCAL_POSITION_NED relative to it
     (the hardware); ``site``: the site origin (the datum). Used only with ``ideal: false``; ideal is ``site``."""
     datum: tuple[float, float, float] | None = None
-    """(lat [deg], lon [deg], alt [m]) of the site origin (the scenario's ``site.datum``), in both modes;
-    None: ArduPilot SITL's default location."""
+    """(lat [deg], lon [deg], alt [m]) of the site origin, in both modes; None: the scenario's ``site.datum``, else
+    the driver's ``datum`` setting, else ArduPilot SITL's default location."""
 
     def __post_init__(self):
         super().__post_init__()
         check_choice("ekf_origin", self.ekf_origin, ("boot", "site"))
         if self.datum is not None:
-            d = tuple(self.datum) if isinstance(self.datum, (list, tuple)) else ()
-            if len(d) != 3:
-                raise ValueError(f"datum must be [lat_deg, lon_deg, alt_m], not {self.datum!r}")
-            check_number("datum latitude", d[0], low=-89.0, high=89.0)
-            check_number("datum longitude", d[1], low=-180.0, high=180.0)
-            check_number("datum altitude", d[2], low=-1000.0, high=10_000.0)
-            object.__setattr__(self, "datum", tuple(float(v) for v in d))
+            object.__setattr__(self, "datum", check_datum(self.datum))
 
 
 class RoverDevice(HostedDevice):
     kind = "mavlink"
     config_class = RoverDeviceConfig
 
-    def __init__(self, robot, **kw):
+    def __init__(self, robot, *, site_datum: Datum | None = None, **kw):
+        """``site_datum``: the scenario's ``site.datum`` (the rover's ``datum`` when its settings name none)."""
         super().__init__(robot, **kw)
         self.config = self.driver_config(MavlinkConfig)
+        try:
+            site = check_datum(site_datum, "site.datum") if site_datum is not None else None
+        except ValueError as e:
+            raise DeviceError(f"robot {self.robot_id}: mavlink device: {e}") from None
+        self.datum: Datum | None = self.device_config.datum or site or self.config.datum
+        """Where the site is on the globe for this rover (None: ArduPilot SITL's home)."""
         self.rng = np.random.default_rng([self.seed, robot.id, 7])
         self.rover: SimRover | None = None
         self._fresh = {"local_position_ned": False, "attitude": False}  # as the driver pairs them into a sample
@@ -68,13 +70,15 @@ class RoverDevice(HostedDevice):
             self.rover = SimRover(("127.0.0.1", 0), system=cfg.target_system, component=cfg.target_component,
                                   gcs_system=cfg.source_system, pose=self.robot.pose, integrate_pose=False,
                                   accel_max=accel, yaw_accel_max=2.0 * accel / b.track, clock=self.wall_time,
-                                  datum=dev.datum, origin_at_boot=not dev.ideal and dev.ekf_origin == "boot")
+                                  datum=self.datum, origin_at_boot=not dev.ideal and dev.ekf_origin == "boot")
         except OSError as e:
             raise DeviceError(f"robot {self.robot_id}: cannot bind the rover's UDP port on loopback: {e}") from None
         self.rover.run_realtime()
 
     def driver_params(self) -> dict:
-        return {"connection": f"udpout:127.0.0.1:{self.rover.port}",
+        """The link, and the rover's datum (the site's origin on the globe: ``site.datum``, else SITL's home) so the
+        driver places it by GLOBAL_POSITION_INT in the site frame whatever its EKF origin."""
+        return {"connection": f"udpout:127.0.0.1:{self.rover.port}", "datum": list(self.rover.datum),
                 "connect_timeout": max(self.config.connect_timeout, SIM_OPEN_TIMEOUT_S)}
 
     def take_commands(self, t_sim: float) -> None:

@@ -44,12 +44,24 @@ dies: the driver's odometry timeout then faults it and it sends zero.
 
 Malformed commands (not CDR, not a Twist, non-finite) are counted in ``counters``
 (``cmd_not_cdr``, ``cmd_undecodable``, ``cmd_bad_value``) and ignored.
+
+With the robot's ``jackal: {transport: rmw_zenoh}`` (the driver's settings, read here so both ends
+agree) the Jackal is a robot running ``rmw_zenoh_cpp`` instead: its node ``<ns>/jackal_sim`` (``ns``
+a ROS namespace: the fleet name's characters other than letters, digits and ``_`` become ``_``)
+holds rmw_zenoh's liveliness tokens for itself, its odometry and scan publishers (scans with sensor
+QoS) and its ``cmd_vel`` subscription; its samples carry rmw_zenoh's attachment and go on rmw_zenoh's
+keys (``stack.drivers.rmw_zenoh``); and, as rmw_zenoh_cpp does, it drops the ``cmd_vel`` samples
+without a valid attachment or of another type or type hash, counted as ``cmd_no_attachment``,
+``cmd_bad_attachment``, ``cmd_type_mismatch``, ``cmd_hash_mismatch`` (``cmd_lost``: gaps in a
+publisher's sequence numbers). Everything else, the hardware-like settings included, is the same on
+both transports.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import re
 import threading
 from collections import deque
 from dataclasses import dataclass, replace
@@ -59,7 +71,8 @@ import numpy as np
 import zenoh
 
 from ..drivers.jackal import JackalConfig
-from ..drivers.ros2cdr import CdrError, decode_twist, encode_laserscan, encode_odometry
+from ..drivers.rmw_zenoh import DEFAULT_QOS, SENSOR_QOS, RmwZenohNode
+from ..drivers.ros2cdr import LASER_SCAN, ODOMETRY, TWIST, CdrError, decode_twist, encode_laserscan, encode_odometry
 from .device_streams import Stream, arc, relative_pose
 from .devices import SIM_OPEN_TIMEOUT_S, Body, DeviceConfig, DeviceError, HostedDevice, check_choice, check_number
 
@@ -71,6 +84,7 @@ ACCEL_MAX = 20.0  # [m/s^2] control.yaml linear.x.max_acceleration
 ALPHA_MAX = 25.0  # [rad/s^2] control.yaml angular.z.max_acceleration
 CMD_TIMEOUT = 0.5  # [s] the J100's cmd_vel timeout (the controller stops)
 LIDAR_RATE = 25.0  # [Hz] a SICK LMS111 (the Jackal's stock 2D lidar) at its slower setting
+NODE_NAME = "jackal_sim"  # the simulated robot's ROS 2 node (rmw_zenoh transport)
 
 
 @dataclass(frozen=True)
@@ -259,13 +273,15 @@ class JackalDevice(HostedDevice):
         if self.session is None:
             raise DeviceError(f"robot {robot.id}: the jackal device needs the world's zenoh session")
         if namespace is None:
-            namespace = f"jackal/{self.keys.fleet}/robot{robot.id}" if self.keys is not None else f"robot{robot.id}"
+            namespace = self._default_namespace(robot)
         cfg = self.driver_config(JackalConfig, namespace=namespace)  # the topics as the driver has them, our namespace
+        self._cfg = cfg
         self._open_timeout = cfg.open_timeout
         self.namespace = namespace
-        self.cmd_key = cfg.key(robot.id, cfg.cmd_topic)
-        self.odom_key = cfg.key(robot.id, cfg.odom_topic)
-        self.scan_key = cfg.key(robot.id, cfg.scan_topic)
+        self.cmd_key = cfg.topic_key(robot.id, cfg.cmd_topic, TWIST)
+        self.odom_key = cfg.topic_key(robot.id, cfg.odom_topic, ODOMETRY)
+        self.scan_key = cfg.topic_key(robot.id, cfg.scan_topic, LASER_SCAN)
+        self.node: RmwZenohNode | None = None  # rmw_zenoh: the robot's node while started
         self.v_max, self.w_max = cfg.v_max, cfg.w_max  # control.yaml max_velocity: 2.0 m/s, 4.0 rad/s
         self._on_malformed = on_malformed or (lambda key: None)
         self._odom_noise = robot.odom_noise  # (v_std, w_std) on the reported twist, as the sim driver's odometry
@@ -280,21 +296,52 @@ class JackalDevice(HostedDevice):
         self._pending: deque[tuple[bytes, float | None]] = deque(maxlen=256)  # (payload, wall arrival or None)
         self._lock = threading.Lock()  # guards _pending
         self._t: float | None = None  # sim time the controller has reached
-        self._sub: Any = None
-        self._pubs: dict[str, Any] = {}
+        self._declared: list = []  # the subscriber and publishers (bridge) or the node (rmw_zenoh)
+        self._pubs: dict[str, Any] = {}  # key -> a zenoh Publisher or an RmwPublisher: put(payload) either way
         self._halt = threading.Event()
         self._thread: threading.Thread | None = None
         cfg = self.device_config
         self.hardware = None if cfg.ideal else _HardwareTelemetry(self, cfg)
 
     # --- lifecycle ----------------------------------------------------------------------
+    def _default_namespace(self, robot) -> str:
+        """``jackal/<fleet>/robot<id>`` (``robot<id>`` without keys); on rmw_zenoh a ROS namespace."""
+        if self.keys is None:
+            return f"robot{robot.id}"
+        fleet = self.keys.fleet
+        if dict(robot.driver_params.get(self.kind, {})).get("transport") == "rmw_zenoh":
+            fleet = re.sub(r"[^A-Za-z0-9_]", "_", fleet)
+            fleet = fleet if re.match(r"[A-Za-z_]", fleet) else f"_{fleet}"
+        return f"jackal/{fleet}/robot{robot.id}"
+
     def start(self) -> None:
-        self._pubs = {k: self.session.declare_publisher(k, encoding=zenoh.Encoding.APPLICATION_CDR)
-                      for k in (self.odom_key, self.scan_key)}
-        self._sub = self.session.declare_subscriber(self.cmd_key, self._on_cmd)
+        if self._cfg.transport == "rmw_zenoh":
+            self._start_node()
+        else:
+            self._pubs = {k: self.session.declare_publisher(k, encoding=zenoh.Encoding.APPLICATION_CDR)
+                          for k in (self.odom_key, self.scan_key)}
+            self._declared = [*self._pubs.values(), self.session.declare_subscriber(
+                self.cmd_key, lambda sample: self._queue_cmd(sample.payload.to_bytes()))]
         self._halt.clear()
         self._thread = threading.Thread(target=self._run_realtime, name=f"jackal-device-{self.robot_id}", daemon=True)
         self._thread.start()
+
+    def _start_node(self) -> None:
+        """rmw_zenoh: the robot's node, its publishers (with attachments) and its checked cmd_vel subscription."""
+        cfg = self._cfg
+        self.node = node = RmwZenohNode(self.session, cfg.node_config(self.robot_id, NODE_NAME),
+                                        on_malformed=self._rmw_malformed)
+        self._declared = [node]
+        self._pubs = {self.odom_key: node.publisher(cfg.odom_topic, ODOMETRY, DEFAULT_QOS),
+                      self.scan_key: node.publisher(cfg.scan_topic, LASER_SCAN, SENSOR_QOS)}
+        node.subscribe(cfg.cmd_topic, TWIST, lambda payload, attachment: self._queue_cmd(payload))
+
+    def _rmw_malformed(self, kind: str) -> None:
+        """The node dropped a cmd_vel sample, as rmw_zenoh_cpp does (or saw a gap: ``lost``, not malformed)."""
+        if kind == "lost":
+            self._count("cmd_lost")  # gaps; node.counters["lost"]: samples
+        else:
+            self._malformed(f"cmd_{kind}")
 
     def driver_params(self) -> dict[str, Any]:
         return {"namespace": self.namespace, "open_timeout": max(self._open_timeout, SIM_OPEN_TIMEOUT_S)}
@@ -315,12 +362,10 @@ class JackalDevice(HostedDevice):
 
     def close(self) -> None:
         self._stop_realtime()
-        if self._sub is not None:
-            self._sub.undeclare()
-            self._sub = None
-        for pub in self._pubs.values():
-            pub.undeclare()
         self._pubs = {}
+        self.node = None
+        while self._declared:
+            self._declared.pop().undeclare()
 
     def _run_realtime(self) -> None:
         wait = 1.0 / ODOM_RATE
@@ -335,11 +380,11 @@ class JackalDevice(HostedDevice):
                 return
 
     # --- commands in --------------------------------------------------------------------
-    def _on_cmd(self, sample: zenoh.Sample) -> None:
-        """Zenoh thread: queue the payload; on the wall clock the arrival is its device time."""
+    def _queue_cmd(self, payload: bytes) -> None:
+        """Zenoh thread (either transport): queue the payload; on the wall clock the arrival is its device time."""
         arrived = None if self.in_lockstep else self.wall_time()
         with self._lock:
-            self._pending.append((sample.payload.to_bytes(), arrived))
+            self._pending.append((payload, arrived))
 
     def take_commands(self, t_sim: float) -> None:
         now = self.device_time(t_sim)

@@ -17,11 +17,12 @@ Ground-station traffic, as ArduPilot answers it (``GCS_MAVLINK`` / ``Rover/GCS_M
 telemetry only when asked, by ``REQUEST_DATA_STREAM`` (the stream groups POSITION,
 EXTRA1, EXTENDED_STATUS and ALL; no ACK, as it is a message), ``MAV_CMD_SET_MESSAGE_INTERVAL``,
 ``MAV_CMD_GET_MESSAGE_INTERVAL`` and ``MAV_CMD_REQUEST_MESSAGE`` (each ACKed; FAILED for a
-message it does not have); HEARTBEAT base_mode with ``GUIDED_ENABLED`` in the autopilot
-modes (GUIDED, AUTO, RTL, SMART_RTL, LOITER), ``MANUAL_INPUT_ENABLED`` in MANUAL, ACRO and
-STEERING, ``SAFETY_ARMED`` when armed; system status CRITICAL in a failsafe, STANDBY in
-HOLD, ACTIVE otherwise (``vehicle_system_status``). ``SET_POSITION_TARGET_LOCAL_NED`` is read
-as ``handle_set_position_target_local_ned`` does, with Rover's ``defines.h`` masks (any bit of
+message it does not have), ``AUTOPILOT_VERSION`` on request (how a ground station identifies
+it); HEARTBEAT base_mode with ``GUIDED_ENABLED`` in the autopilot modes (GUIDED, AUTO, RTL,
+SMART_RTL, LOITER), ``MANUAL_INPUT_ENABLED`` in MANUAL, ACRO and STEERING, ``SAFETY_ARMED``
+when armed; system status CRITICAL in a failsafe, STANDBY in HOLD, ACTIVE otherwise
+(``vehicle_system_status``). ``SET_POSITION_TARGET_LOCAL_NED`` is read as
+``handle_set_position_target_local_ned`` does, with Rover's ``defines.h`` masks (any bit of
 a group set ignores the group: position x|y, velocity vx|vy, acceleration ax|ay, yaw, yaw
 rate): frames LOCAL_NED (from the EKF origin), LOCAL_OFFSET_NED, BODY_NED, BODY_OFFSET_NED;
 acceleration not ignored -> rejected with a STATUSTEXT; a position -> drive there (stop
@@ -31,11 +32,11 @@ turn rate or a heading alone -> turn on the spot. Velocity and heading targets t
 3 s; a position target does not.
 
 Frames and the globe: the world's (site) frame has its origin at ``datum`` (lat, lon, alt)
-and maps to the globe through a local tangent plane (north = y, east = x; equirectangular,
-WGS-84 radius: cm-exact over a site). ``LOCAL_POSITION_NED`` is relative to the EKF
-origin: the datum by default, where the rover booted with ``origin_at_boot`` (ArduPilot
-sets it at its first fix), or what ``SET_GPS_GLOBAL_ORIGIN`` says (answered with
-``GPS_GLOBAL_ORIGIN``). ``GLOBAL_POSITION_INT``: lat/lon degE7 and alt mm from the datum,
+and maps to the globe through the datum's WGS 84 local tangent plane (north = y, east = x;
+``stack.models.geodesy``, the conversion the MAVLink driver reads GLOBAL_POSITION_INT with).
+``LOCAL_POSITION_NED`` is relative to the EKF origin: the datum by default, where the
+rover booted with ``origin_at_boot`` (ArduPilot sets it at its first fix), or what
+``SET_GPS_GLOBAL_ORIGIN`` says (answered with ``GPS_GLOBAL_ORIGIN``). ``GLOBAL_POSITION_INT``: lat/lon degE7 and alt mm from the datum,
 relative_alt 0 (flat ground, home at boot), vx/vy/vz cm/s NED, hdg cdeg.
 
 It is driven by its caller's time, like ``odrive_sim.ODrivePair``: ``step(t_now)`` handles
@@ -70,18 +71,25 @@ from typing import Any, Callable
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from ..drivers.mavlink import (MODE_GUIDED, MODE_HOLD, ROVER_MODES, mode_name, mode_number, ned_velocity,
-                               ned_to_world, world_to_ned, wrap_angle, yaw_rate_ned)
+                               ned_to_world, origin_e7, world_to_ned, wrap_angle, yaw_rate_ned)
+from ..models.geodesy import geodetic_to_ne, geodetic_to_site, ne_to_geodetic, site_to_geodetic
 
 STREAMS = {mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: "LOCAL_POSITION_NED", mav.MAVLINK_MSG_ID_ATTITUDE: "ATTITUDE",
            mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: "GLOBAL_POSITION_INT", mav.MAVLINK_MSG_ID_SYS_STATUS: "SYS_STATUS"}
 """Message ids the rover streams when asked (MAV_CMD_SET_MESSAGE_INTERVAL, REQUEST_DATA_STREAM)."""
-ONCE = {**STREAMS, mav.MAVLINK_MSG_ID_HEARTBEAT: "HEARTBEAT", mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN: "GPS_GLOBAL_ORIGIN"}
+ONCE = {**STREAMS, mav.MAVLINK_MSG_ID_HEARTBEAT: "HEARTBEAT", mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN: "GPS_GLOBAL_ORIGIN",
+        mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION: "AUTOPILOT_VERSION"}
 """Message ids it sends once on MAV_CMD_REQUEST_MESSAGE."""
 DATA_STREAMS = {mav.MAV_DATA_STREAM_EXTENDED_STATUS: (mav.MAVLINK_MSG_ID_SYS_STATUS,),
                 mav.MAV_DATA_STREAM_POSITION: (mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
                                                mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED),
                 mav.MAV_DATA_STREAM_EXTRA1: (mav.MAVLINK_MSG_ID_ATTITUDE,)}
 """REQUEST_DATA_STREAM groups (ArduPilot's stream contents, restricted to the messages it has)."""
+FIRMWARE = (4, 5, 7)
+"""Rover firmware (major, minor, patch) in AUTOPILOT_VERSION (an official release: type 255)."""
+CAPABILITIES = (mav.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | mav.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
+                | mav.MAV_PROTOCOL_CAPABILITY_COMMAND_INT | mav.MAV_PROTOCOL_CAPABILITY_MISSION_INT)
+"""AUTOPILOT_VERSION capabilities: the subset of ArduPilot's ``GCS_MAVLINK::capabilities()`` this rover has."""
 MAX_STREAM_HZ = 50.0  # ArduPilot caps a stream at its main loop rate; Rover runs at 50 Hz
 
 AUTOPILOT_MODES = {ROVER_MODES[m] for m in ("GUIDED", "AUTO", "RTL", "SMART_RTL", "LOITER", "FOLLOW", "DOCK")
@@ -103,32 +111,6 @@ HEADING_P = 2.0  # [1/s] turn rate per rad of heading error (ArduPilot's ATC_STR
 
 DEFAULT_DATUM = (-35.363261, 149.165230, 584.0)
 """(lat, lon, alt) of a site without a datum: ArduPilot SITL's default location (CMAC)."""
-_EARTH_RADIUS = 6_378_137.0  # [m] WGS-84 equatorial radius, for the local tangent plane
-
-
-# --- the globe: a local tangent plane around a datum (x east, y north) ----------------------
-def ne_to_geodetic(origin: tuple[float, float, float], north: float, east: float) -> tuple[float, float, float]:
-    """(lat, lon, alt) at (north, east) [m] from ``origin`` (lat, lon, alt) on its tangent plane."""
-    lat0, lon0, alt0 = origin
-    return (lat0 + math.degrees(north / _EARTH_RADIUS),
-            lon0 + math.degrees(east / (_EARTH_RADIUS * math.cos(math.radians(lat0)))), alt0)
-
-
-def geodetic_to_ne(origin: tuple[float, float, float], lat: float, lon: float) -> tuple[float, float]:
-    """(north, east) [m] of (lat, lon) from ``origin`` on its tangent plane (inverse of ne_to_geodetic)."""
-    lat0, lon0, _ = origin
-    return (math.radians(lat - lat0) * _EARTH_RADIUS,
-            math.radians(lon - lon0) * _EARTH_RADIUS * math.cos(math.radians(lat0)))
-
-
-def site_to_geodetic(datum: tuple[float, float, float], x: float, y: float) -> tuple[float, float, float]:
-    """A site-frame position (x east, y north) on the globe, through the datum's tangent plane."""
-    return ne_to_geodetic(datum, y, x)
-
-
-def geodetic_to_site(datum: tuple[float, float, float], lat: float, lon: float) -> tuple[float, float]:
-    north, east = geodetic_to_ne(datum, lat, lon)
-    return east, north
 
 
 def _count(counters: dict[str, int], key: str) -> None:
@@ -512,13 +494,23 @@ its old name: (lat, lon)). ``origin_at_boot``: the EKF origin is where the rover
         self._enc.send(self._enc.statustext_encode(severity, text.encode()[:50]))
         _count(self.counters, "statustext")
 
+    def _send_autopilot_version(self) -> None:
+        """AUTOPILOT_VERSION as ``GCS_MAVLINK::send_autopilot_version``: capabilities, firmware, a uid."""
+        major, minor, patch = FIRMWARE
+        uid = f"SIMROVER{self.system:03d}".encode()
+        self._enc.send(self._enc.autopilot_version_encode(
+            CAPABILITIES, major << 24 | minor << 16 | patch << 8 | 255, 0, 0, 0, bytes(8), bytes(8), bytes(8),
+            0, 0, int.from_bytes(uid[:8], "little"), uid.ljust(18, b"\0")))
+        _count(self.counters, "autopilot_version")
+
     def _send_once(self, msg_id: int, t: float) -> None:
         """One message on request (MAV_CMD_REQUEST_MESSAGE, a new origin)."""
         if msg_id == mav.MAVLINK_MSG_ID_HEARTBEAT:
             return self._send_heartbeat()
+        if msg_id == mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
+            return self._send_autopilot_version()
         if msg_id == mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
-            lat, lon, alt = self.origin
-            self._enc.send(self._enc.gps_global_origin_encode(round(lat * 1e7), round(lon * 1e7), round(alt * 1e3),
+            self._enc.send(self._enc.gps_global_origin_encode(*origin_e7(self.origin),
                                                               int(max(0.0, t - (self._t0 or 0.0)) * 1e6)))
             return _count(self.counters, "gps_global_origin")
         self._send_stream(msg_id, t)
@@ -530,7 +522,7 @@ its old name: (lat, lon)). ``origin_at_boot``: the EKF origin is where the rover
         ms = int((t - (self._t0 if self._t0 is not None else t)) * 1000) & 0xFFFFFFFF
         lat, lon, alt = site_to_geodetic(self.datum, self._x, self._y)
         if msg_id == mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
-            north, east = geodetic_to_ne(self.origin, lat, lon)  # from the EKF origin
+            north, east = geodetic_to_ne(self.origin, lat, lon, alt)  # from the EKF origin
             msg = self._enc.local_position_ned_encode(ms, north, east, 0.0, vn, ve, 0.0)
         elif msg_id == mav.MAVLINK_MSG_ID_ATTITUDE:
             msg = self._enc.attitude_encode(ms, 0.0, 0.0, yaw_ned, 0.0, 0.0, yaw_rate_ned(w))

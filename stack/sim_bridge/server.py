@@ -241,7 +241,11 @@ class WorldServer:
         for r in self.sc.robots:
             if r.driver == "sim":
                 continue
-            dev = make_device(r.driver, r, run_dir=self.cfg.out, session=self.s, keys=self.keys, seed=self.sc.seed)
+            extra = {"site_datum": self.sc.site.datum} if r.driver == "mavlink" else {}
+            dev = make_device(r.driver, r, run_dir=self.cfg.out, session=self.s, keys=self.keys, seed=self.sc.seed,
+                              **extra)
+            # a device that scans at its own times casts them at its body's pose then
+            dev.ray_caster = lambda x, y, yaw, angles, rid=r.id: self.world.lidar_at(rid, (x, y, yaw), angles)
             self.devices[r.id] = dev  # closed by run() whatever happens next
             dev.start()
             log.info("world: robot %d: simulated %s device: %s", r.id, r.driver, dev.driver_params())

@@ -31,7 +31,9 @@ class World:
         self.sc = scenario
         self.cid = p.connect(p.GUI if gui else p.DIRECT)
         p.setGravity(0, 0, 0, physicsClientId=self.cid)
-        self.rng = np.random.default_rng(scenario.seed if seed is None else seed)
+        self.seed = scenario.seed if seed is None else seed
+        self.rng = np.random.default_rng(self.seed)
+        self._cast_rngs: dict[int, np.random.Generator] = {}  # lidar_at's noise, per robot index
         self.ids = [r.id for r in scenario.robots]
         self.index = {rid: i for i, rid in enumerate(self.ids)}
         n = len(self.ids)
@@ -92,9 +94,12 @@ class World:
             self.ray_offsets.append(r.radius + 0.01)
 
     def _sync_bodies(self) -> None:
-        for i, b in enumerate(self.robot_bodies):
-            p.resetBasePositionAndOrientation(b, [self.x[i], self.y[i], LIDAR_Z],
-                                              p.getQuaternionFromEuler([0, 0, self.yaw[i]]), physicsClientId=self.cid)
+        for i in range(len(self.robot_bodies)):
+            self._sync_body(i)
+
+    def _sync_body(self, i: int) -> None:
+        p.resetBasePositionAndOrientation(self.robot_bodies[i], [self.x[i], self.y[i], LIDAR_Z],
+                                          p.getQuaternionFromEuler([0, 0, self.yaw[i]]), physicsClientId=self.cid)
 
     # --- dynamics ----------------------------------------------------------------------
     def step(self, commands: dict[int, tuple[float, float]], dt: float, exact: frozenset[int] | set[int] = frozenset()) -> None:
@@ -112,16 +117,15 @@ class World:
         self._sync_bodies()
 
     # --- sensors -----------------------------------------------------------------------
-    def _beam_mask(self, i: int) -> np.ndarray:
-        """Beams of robot i that can hit anything: those inside the angular span of a body within range.
+    def _beam_mask(self, i: int, x: float, y: float, yaw: float, ang: np.ndarray) -> np.ndarray:
+        """Beams (angles ``ang``, robot frame) of robot i standing at (x, y, yaw) that can hit anything: those
+        inside the angular span of a body within range.
 
         Exact culling, not an approximation: a beam outside every nearby body's span cannot hit,
         so it is not cast and reads max range. Static obstacles are bounded by their pybullet AABBs,
         robots by their circles; both grown by CULL_MARGIN (Bullet's collision margin).
         """
         lid = self.sc.robots[i].lidar
-        ang = self.beam_angles[i]
-        x, y, yaw = self.x[i], self.y[i], self.yaw[i]
         r0 = self.ray_offsets[i]
         centres, halves = [], []
         # other robots: discs
@@ -159,20 +163,20 @@ class World:
         diff = (ang[None, :] - c[:, None] + np.pi) % (2 * np.pi) - np.pi
         return (np.abs(diff) <= h[:, None]).any(axis=0)
 
-    def lidar(self, which: list[int] | None = None) -> dict[int, np.ndarray]:
-        """Ranges per robot from one ``rayTestBatch`` (noise added, clipped to [0, range])."""
-        idx = [self.index[r] for r in (which if which is not None else self.ids)]
-        froms, tos, masks = [], [], []
-        for i in idx:
-            lid = self.sc.robots[i].lidar
-            m = self._beam_mask(i) if self.cull else np.ones(self.beam_angles[i].size, bool)
-            a = self.yaw[i] + self.beam_angles[i][m]
-            c, s = np.cos(a), np.sin(a)
-            r0 = self.ray_offsets[i]
-            z = np.full(a.size, LIDAR_Z)
-            froms.append(np.column_stack([self.x[i] + r0 * c, self.y[i] + r0 * s, z]))
-            tos.append(np.column_stack([self.x[i] + lid.range * c, self.y[i] + lid.range * s, z]))
-            masks.append(m)
+    def _rays(self, i: int, x: float, y: float, yaw: float,
+              ang: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Robot i's rays from (x, y, yaw) at beam angles ``ang``: (mask of the beams cast, froms, tos)."""
+        lid = self.sc.robots[i].lidar
+        m = self._beam_mask(i, x, y, yaw, ang) if self.cull else np.ones(ang.size, bool)
+        a = yaw + ang[m]
+        c, s = np.cos(a), np.sin(a)
+        r0 = self.ray_offsets[i]
+        z = np.full(a.size, LIDAR_Z)
+        froms = np.column_stack([x + r0 * c, y + r0 * s, z])
+        return m, froms, np.column_stack([x + lid.range * c, y + lid.range * s, z])
+
+    def _cast(self, froms: list[np.ndarray], tos: list[np.ndarray]) -> np.ndarray:
+        """Hit fractions of the rays (1: no hit), by ``rayTestBatch`` in batches."""
         F = np.concatenate(froms) if froms else np.zeros((0, 3))
         T = np.concatenate(tos) if tos else np.zeros((0, 3))
         fracs = np.ones(len(F))
@@ -181,20 +185,60 @@ class World:
             res = p.rayTestBatch(F[s0:s0 + batch].tolist(), T[s0:s0 + batch].tolist(), numThreads=1, physicsClientId=self.cid)
             fracs[s0:s0 + len(res)] = [h[2] if h[0] >= 0 else 1.0 for h in res]
         self.rays_cast += len(F)
-        out = {}
-        pos = 0
-        for i, m in zip(idx, masks):
-            lid = self.sc.robots[i].lidar
-            r0 = self.ray_offsets[i]
+        return fracs
+
+    def _ranges(self, i: int, m: np.ndarray, fracs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Robot i's ranges from the hit fractions of its cast beams (``m``): noise added, clipped to [0, range]."""
+        lid = self.sc.robots[i].lidar
+        r0 = self.ray_offsets[i]
+        f = np.ones(m.size)
+        f[m] = fracs
+        ranges = np.where(f >= 1.0, lid.range, r0 + f * (lid.range - r0))
+        if lid.noise_std > 0:
+            ranges = ranges + rng.normal(0.0, lid.noise_std, m.size)
+        return np.clip(ranges, 0.0, lid.range)
+
+    def lidar(self, which: list[int] | None = None) -> dict[int, np.ndarray]:
+        """Ranges per robot from one ``rayTestBatch`` (noise added, clipped to [0, range])."""
+        idx = [self.index[r] for r in (which if which is not None else self.ids)]
+        rays = [self._rays(i, self.x[i], self.y[i], self.yaw[i], self.beam_angles[i]) for i in idx]
+        fracs = self._cast([f for _, f, _ in rays], [t for _, _, t in rays])
+        out, pos = {}, 0
+        for i, (m, _, _) in zip(idx, rays):
             n = int(m.sum())
-            f = np.ones(m.size)
-            f[m] = fracs[pos:pos + n]
-            ranges = np.where(f >= 1.0, lid.range, r0 + f * (lid.range - r0))
-            if lid.noise_std > 0:
-                ranges = ranges + self.rng.normal(0.0, lid.noise_std, m.size)
-            out[self.ids[i]] = np.clip(ranges, 0.0, lid.range)
+            out[self.ids[i]] = self._ranges(i, m, fracs[pos:pos + n], self.rng)
             pos += n
         return out
+
+    def lidar_at(self, rid: int, pose: tuple[float, float, float], angles) -> np.ndarray:
+        """Robot ``rid``'s lidar cast as if it stood at ``pose`` (x, y, yaw; world frame) with beam ``angles``
+        (robot frame): the rays, culling, range and noise of ``lidar()``, the other bodies where they are now.
+
+        For a simulated device that scans at its own times between world steps (its ``ray_caster``). The
+        robot's body moves to ``pose`` for the cast and back after it; the noise comes from the robot's
+        own generator (seeded by the world's seed and the robot id), so extra scans leave the world's
+        own scans and odometry as they were: deterministic, whoever casts how often.
+        """
+        i = self.index[rid]
+        x, y, yaw = (float(v) for v in pose)
+        ang = np.asarray(angles, float).reshape(-1)
+        body = self.robot_bodies[i]
+        moved = (x, y, yaw) != (self.x[i], self.y[i], self.yaw[i])
+        if moved:
+            p.resetBasePositionAndOrientation(body, [x, y, LIDAR_Z], p.getQuaternionFromEuler([0, 0, yaw]),
+                                              physicsClientId=self.cid)
+        try:
+            m, froms, tos = self._rays(i, x, y, yaw, ang)
+            fracs = self._cast([froms], [tos])
+        finally:
+            if moved:
+                self._sync_body(i)
+        return self._ranges(i, m, fracs, self._cast_rng(i))
+
+    def _cast_rng(self, i: int) -> np.random.Generator:
+        if i not in self._cast_rngs:
+            self._cast_rngs[i] = np.random.default_rng([self.seed, self.ids[i], 0x11DA])
+        return self._cast_rngs[i]
 
     def odometry(self, rid: int, dt: float) -> tuple[float, float, tuple[float, float, float]]:
         """Encoder speeds (v, w) with the robot's odometry noise, and the base's dead-reckoned pose
