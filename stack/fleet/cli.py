@@ -127,10 +127,13 @@ def _faults(a: argparse.Namespace, sc) -> list[tuple[str, int, float]]:
             if t > sc.duration:
                 raise ScenarioError(f"--{kind} {rid}@{t:g}: after the run's end ({sc.duration:g} s)")
             faults.append((kind, rid, t))
+    from ..sim_bridge.devices import hosted
+
+    with_device = [r.id for r in sc.robots if r.driver in hosted()]
     for rid, t in a.device_fault:
-        if rid not in ids or sc.robot(rid).driver == "sim":
+        if rid not in with_device:
             raise ScenarioError(f"--device-fault {rid}@{t:g}: robot {rid} has no simulated device "
-                                f"(robots with one: {', '.join(str(r.id) for r in sc.robots if r.driver != 'sim') or 'none'})")
+                                f"(robots with one: {', '.join(map(str, with_device)) or 'none'})")
         if t > sc.duration:
             raise ScenarioError(f"--device-fault {rid}@{t:g}: after the run's end ({sc.duration:g} s)")
     return faults
@@ -262,7 +265,12 @@ def _summary(rep: dict, out: Path, code: int) -> None:
 
 
 def main() -> None:
-    sys.exit(cli())
+    try:
+        code = cli()
+    except BrokenPipeError:  # stdout closed early (``| head``): the run itself ended as it should
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        code = 1
+    sys.exit(code)
 
 
 if __name__ == "__main__":

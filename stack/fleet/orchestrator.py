@@ -17,7 +17,7 @@ import signal
 import subprocess
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import zenoh
@@ -112,8 +112,11 @@ def _agents_scenario(sc: Scenario, out: Path, world: Proc, timeout: float = 30.0
     devices = json.loads(path.read_text())
     settings = {int(rid): dict(d["settings"]) for rid, d in devices.items()}
     if can_log:
-        for r in sc.robots:
-            if r.driver == "can":
+        from ..drivers import DRIVERS
+
+        for r in sc.robots:  # every robot whose driver logs a CAN bus (its config has ``can_log``)
+            cls = DRIVERS[r.driver].config_class()
+            if cls is not None and "can_log" in {f.name for f in fields(cls)}:
                 settings[r.id]["can_log"] = str(out / "logs" / f"can-{r.id}.asc")
     agents = with_driver_settings(sc, settings)
     target = out / "scenario.agents.yaml"
