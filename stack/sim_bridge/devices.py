@@ -190,6 +190,11 @@ class HostedDevice(ABC):
     def driver_params(self) -> dict[str, Any]:
         """Settings the agent's driver needs to find this device (e.g. ``{"channel": ...}``)."""
 
+    def fleet_params(self) -> dict[str, Any]:
+        """What the world tells the fleet to hand the agent's driver (``devices.json``): ``driver_params`` and
+        whatever else the simulated site decides for it (a rover's datum)."""
+        return self.driver_params()
+
     @abstractmethod
     def take_commands(self, t_sim: float) -> None:
         """Handle every message the driver has sent so far (they act from ``t_sim`` on)."""

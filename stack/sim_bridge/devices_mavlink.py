@@ -76,10 +76,15 @@ class RoverDevice(HostedDevice):
         self.rover.run_realtime()
 
     def driver_params(self) -> dict:
-        """The link, and the rover's datum (the site's origin on the globe: ``site.datum``, else SITL's home) so the
-        driver places it by GLOBAL_POSITION_INT in the site frame whatever its EKF origin."""
-        return {"connection": f"udpout:127.0.0.1:{self.rover.port}", "datum": list(self.rover.datum),
+        return {"connection": f"udpout:127.0.0.1:{self.rover.port}",
                 "connect_timeout": max(self.config.connect_timeout, SIM_OPEN_TIMEOUT_S)}
+
+    def fleet_params(self) -> dict:
+        """What the fleet hands the agent's driver: the link, and the site's datum where the driver has none of its
+        own (the scenario's ``site.datum``, else the rover's, SITL's home: the simulated site is there), so the
+        driver places the rover by GLOBAL_POSITION_INT in the site frame whatever its EKF origin."""
+        own = self.robot.driver_params.get(self.kind, {}).get("datum")
+        return self.driver_params() | ({} if own is not None else {"datum": list(self.rover.datum)})
 
     def take_commands(self, t_sim: float) -> None:
         if self.in_lockstep:

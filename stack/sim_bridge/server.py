@@ -251,7 +251,7 @@ class WorldServer:
             log.info("world: robot %d: simulated %s device: %s", r.id, r.driver, dev.driver_params())
         if self.cfg.out is not None:
             self.cfg.out.mkdir(parents=True, exist_ok=True)
-            doc = {str(rid): {"driver": dev.kind, "settings": dev.driver_params()} for rid, dev in self.devices.items()}
+            doc = {str(rid): {"driver": dev.kind, "settings": dev.fleet_params()} for rid, dev in self.devices.items()}
             tmp = self.cfg.out / "devices.json.tmp"
             tmp.write_text(json.dumps(doc, indent=2))
             tmp.replace(self.cfg.out / "devices.json")  # whole or not at all: the fleet reads it as soon as it exists
