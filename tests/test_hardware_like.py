@@ -101,3 +101,55 @@ def test_rovers_that_booted_in_different_places_hold_their_formation_in_the_site
         assert r["driver_fault"] is None and r["estimator_rmse_m"] < 0.2, (rid, r)
         if rid != "0":  # each follower in its slot of the site frame (each one's boot offset was 1-5.6 m)
             assert r["final_error_m"] < 0.5, (rid, r)
+
+
+@pytest.mark.fleet
+@pytest.mark.parametrize("driver", ["sim", "jackal"])
+def test_a_restarted_agent_on_a_device_that_booted_elsewhere_knows_where_it_is(tmp_path, driver):
+    """Odometry from boot (the Jackal by default; the world's own base with ``ideal: false``): a restarted agent's
+    first sample is wherever the robot has driven to in its odom frame; ``boot`` maps it from the start pose."""
+    d = scenario_dict(duration=40.0, success={"goal_tolerance": 0.5, "max_time": 40.0, "no_collisions": True})
+    d["robot"] |= {"odom_noise": {"v_std": 0.02, "w_std": 0.02}, "device": {"ideal": False}}
+    for r in d["robots"]:
+        r["driver"] = driver
+    proc, rep = run_fleet(write_scenario(tmp_path / "r.yaml", d), tmp_path / "out", "--kill", "2@4",
+                          "--restart", "2@8", "--no-plots")
+    assert rep is not None and proc.returncode == 0, proc.stdout + proc.stderr
+    assert [(f["robot"], f["kind"]) for f in rep["faults"]] == [(2, "killed"), (2, "restarted")]
+    r2 = rep["robots"]["2"]
+    assert r2["alive_at_end"] and r2["final_error_m"] < 0.5 and r2["estimator_rmse_m"] < 0.3, r2
+
+
+def test_odom_origin_resolves_per_robot_from_its_device():
+    from stack.scenario import ScenarioError, parse_scenario
+
+    d = scenario_dict()
+    for r, driver in zip(d["robots"], ("jackal", "can", "mavlink", "sim")):
+        r["driver"] = driver
+    sc = parse_scenario(d)
+    assert [r.odom_origin for r in sc.robots] == ["boot", "boot", "boot-position", "site"]  # hardware-like default
+    d["robot"]["device"] = {"ideal": True}
+    assert {r.odom_origin for r in parse_scenario(d).robots} == {"site"}
+    d["robot"]["device"] = {"ideal": False, "mavlink": {"ekf_origin": "site"}, "jackal": {"odom_frame": "site"}}
+    assert [r.odom_origin for r in parse_scenario(d).robots] == ["site", "boot", "site", "boot"]
+    d["robot"].pop("device")
+    d["robots"][1]["odom_origin"] = "first"
+    assert parse_scenario(d).robot(1).odom_origin == "first"
+    d["robots"][1]["odom_origin"] = "gps"
+    with pytest.raises(ScenarioError, match=r"robots\[1\]\.odom_origin: expected one of auto, site, boot") as e:
+        parse_scenario(d)
+    assert "\n" not in str(e.value)
+
+
+def test_the_world_s_own_base_reports_odometry_in_the_robot_s_odom_frame():
+    from stack.scenario import parse_scenario
+    from stack.sim_bridge.device_streams import relative_pose
+    from stack.sim_bridge.server import sim_odom_origin
+
+    d = scenario_dict()
+    d["robots"][1]["pose"] = [-1.0, 3.5, -30.0]
+    d["robot"]["device"] = {"ideal": False}
+    r = parse_scenario(d).robot(1)
+    assert r.odom_origin == "boot" and relative_pose(sim_odom_origin(r), r.pose) == pytest.approx((0.0, 0.0, 0.0))
+    d["robot"]["device"] = {"ideal": True}
+    assert sim_odom_origin(parse_scenario(d).robot(1)) is None  # world-frame odometry, as before
