@@ -82,9 +82,11 @@ class RoverDevice(HostedDevice):
     def fleet_params(self) -> dict:
         """What the fleet hands the agent's driver: the link, and the site's datum where the driver has none of its
         own (the scenario's ``site.datum``, else the rover's, SITL's home: the simulated site is there), so the
-        driver places the rover by GLOBAL_POSITION_INT in the site frame whatever its EKF origin."""
+        driver places the rover by GLOBAL_POSITION_INT in the site frame whatever its EKF origin; an ideal rover
+        without a datum keeps LOCAL_POSITION_NED fixes (its EKF origin is the site's)."""
         own = self.robot.driver_params.get(self.kind, {}).get("datum")
-        return self.driver_params() | ({} if own is not None else {"datum": list(self.rover.datum)})
+        placed = own is None and (self.datum is not None or not self.device_config.ideal)  # ideal, no datum: as before
+        return self.driver_params() | ({"datum": list(self.rover.datum)} if placed else {})
 
     def take_commands(self, t_sim: float) -> None:
         if self.in_lockstep:
