@@ -123,6 +123,15 @@ class RobotConfig:
     """Simulation only: the settings of the simulated device behind this robot's driver (``robot.device``:
     ``ideal`` for every device, then ``<driver>: {...}`` for the device behind that driver), resolved for
     its own driver; checked against that device's config (``stack/sim_bridge``'s ``DeviceConfig``s)."""
+    odom_origin: str = "site"
+    """Where the driver's odom frame lies in the site frame (``stack.agents.frames.OdomFrame``), resolved from
+    ``robot.odom_origin`` (``auto`` | ``site`` | ``boot`` | ``boot-position`` | ``first``): ``site``, the odometry
+    is in the site frame; ``boot``, it is (0, 0, 0) at the robot's ``pose`` (where it booted: a real Jackal, any
+    hardware-like device); ``boot-position``, its origin is the start position but headings are the site's (an
+    ArduPilot EKF origin set at boot); ``first``, the first sample is at ``pose``. ``auto`` (the default): ``site``
+    where the simulated device is ideal (``robot.device.ideal``), else the device's own frame (``boot``; a
+    ``mavlink`` rover ``boot-position``, or ``site`` with ``ekf_origin: site``; a ``jackal`` with
+    ``odom_frame: site``, ``site``). The world's own ``sim`` base publishes its odometry in this frame."""
     settings: Mapping[str, Any] = field(default_factory=dict)
     """Policy settings key (``robot.<key>``) -> its resolved config dataclass: every block the scenario
     gives, and this robot's policy and ``pid`` (situation 1) with their defaults where it gives none."""
@@ -354,7 +363,9 @@ def _max(rd: "_Reader", v: int, hi: int, path: str) -> int:
 
 
 _CORE_KEYS = {"radius", "v_max", "w_max", "lidar", "odom_noise", "imu_noise", "fix", "comm_range", "cmd_timeout", "base",
-              "policy", "driver", "device"}
+              "policy", "driver", "device", "odom_origin"}
+
+ODOM_ORIGINS = ("auto", "site", "boot", "boot-position", "first")
 
 
 def _robot_keys() -> set[str]:
@@ -382,6 +393,8 @@ def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict
     out["driver_params"] = _driver_blocks(rd, d, path, out.get("driver_params", {}))
     if "device" in d:
         out["device_blocks"] = _device_blocks(rd, d["device"], f"{path}.device", out.get("device_blocks", {}))
+    if "odom_origin" in d:
+        out["odom_origin"] = rd.choice(d["odom_origin"], f"{path}.odom_origin", ODOM_ORIGINS)
     return out
 
 
@@ -421,6 +434,22 @@ def _resolve_device(rd: _Reader, blocks: Mapping[str, Any], driver: str, path: s
         except ValueError as e:
             raise rd.fail(f"{path}.device.{driver}" if driver in blocks else f"{path}.device", str(e)) from None
     return out if driver in _hosted() else {}
+
+
+def _odom_origin(chosen: str, blocks: Mapping[str, Any], driver: str) -> str:
+    """``robot.odom_origin`` resolved for a robot with ``driver`` and its device ``blocks`` (see RobotConfig)."""
+    if chosen != "auto":
+        return chosen
+    if driver in _hosted():
+        from .sim_bridge.devices import DeviceConfig  # stdlib only: no simulator imported
+
+        ideal = blocks.get("ideal", DeviceConfig().ideal)
+    else:
+        ideal = blocks.get("ideal", True)  # the world's own base, or a robot no simulator stands in for
+    own = dict(blocks.get(driver, {}))
+    if ideal or own.get("ekf_origin") == "site" or own.get("odom_frame") == "site":
+        return "site"
+    return "boot-position" if driver == "mavlink" else "boot"
 
 
 def _hosted() -> set[str]:
@@ -669,7 +698,9 @@ def _robot(rd: _Reader, r: Any, p: str, defaults: dict[str, Any]) -> RobotConfig
     role = rd.choice(r["role"], f"{p}.role", ROLES) if "role" in r else None
     goal = rd.vector(r["goal"], f"{p}.goal", 2) if "goal" in r else None
     fields_ = _robot_fields(rd, r, p, defaults)
-    fields_["device"] = _resolve_device(rd, fields_.pop("device_blocks", {}), fields_.get("driver", "sim"), p)
+    blocks, driver = fields_.pop("device_blocks", {}), fields_.get("driver", "sim")
+    fields_["device"] = _resolve_device(rd, blocks, driver, p)
+    fields_["odom_origin"] = _odom_origin(fields_.get("odom_origin", "auto"), blocks, driver)
     robot = RobotConfig(id=rid, role=role, pose=(x, y, math.radians(yaw_deg)), goal=goal, **fields_)
     return robot.with_defaults("pid", robot.policy_key)
 

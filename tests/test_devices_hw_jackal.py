@@ -208,9 +208,11 @@ def test_losses_and_jitter_are_seeded_and_bounded(sessions):
                                        abs=1e-6)  # odom_frame: site
 
 
-def test_ideal_is_the_default_and_sends_one_world_frame_sample_per_step(sessions):
+def test_ideal_sends_one_world_frame_sample_per_step_and_hardware_like_is_the_default(sessions):
     robot = RobotConfig(id=4, role="leader", pose=BOOT)
-    dev = JackalDevice(robot, session=sessions[1], namespace=f"hw{next(_ns)}/robot4")
+    assert not JackalDevice(robot, session=sessions[1], namespace=f"hw{next(_ns)}/robot4").device_config.ideal
+    assert JackalDeviceConfig().lidar_rate_hz == 25.0 and JackalDeviceConfig().odom_rate_hz == 50.0
+    dev = JackalDevice(robot, session=sessions[1], namespace=f"hw{next(_ns)}/robot4", device={"ideal": True})
     assert dev.device_config.ideal and dev.hardware is None
     dev.start()
     wire = Wire(sessions[0], dev)

@@ -20,7 +20,7 @@ import pytest
 
 from stack.scenario import RobotConfig
 from stack.sim_bridge.devices import Body, DeviceError
-from stack.sim_bridge.devices_can import OdriveDevice
+from stack.sim_bridge.devices_can import OdriveDevice, OdriveDeviceConfig
 from stack.sim_bridge.odrive_sim import MotorModel, ODrivePair
 
 SHARED = Path("/work/shared/protocols/odrive-cansimple-0.6.10.dbc")
@@ -178,7 +178,8 @@ def test_encoders_count_from_power_up_and_every_estimate_goes_out_at_its_own_tim
 
 
 def test_ideal_device_counts_from_zero_and_sends_the_newest_estimate():
-    dev = device()
+    assert not OdriveDeviceConfig().ideal  # hardware-like is the default
+    dev = device(ideal=True)
     dev.start()
     try:
         assert dev.device_config.ideal and all(dev.pair.axes[n].pos == 0.0 for n in (5, 6))

@@ -210,12 +210,12 @@ def test_bad_settings_name_the_field():
                             ({"datum": [95.0, 0.0, 0.0]}, "datum latitude"), ({"origin": 1}, "origin")):
         with pytest.raises(DeviceError, match=f"robot 1: mavlink device: .*{field}"):
             RoverDevice(robot, device=settings)
-    assert RoverDeviceConfig().ideal and RoverDeviceConfig(datum=[1, 2, 3]).datum == (1.0, 2.0, 3.0)
+    assert not RoverDeviceConfig().ideal and RoverDeviceConfig(datum=[1, 2, 3]).datum == (1.0, 2.0, 3.0)
 
 
 def test_ideal_keeps_the_site_origin_as_the_ekf_origin():
     robot = RobotConfig(id=1, role="leader", pose=BOOT, driver="mavlink")
-    dev = RoverDevice(robot)
+    dev = RoverDevice(robot, device={"ideal": True})
     dev.start()
     try:
         assert dev.rover.origin == dev.rover.datum and dev.rover.datum[:2] == (-35.363261, 149.165230)

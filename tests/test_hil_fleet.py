@@ -2,8 +2,11 @@
 
 The agents' drivers are the ones that drive real robots (python-can over slcan on a pty,
 pymavlink over UDP loopback); only the ODrive pair and the rover autopilot are simulated, in
-the world process, bound to the pybullet bodies. A run on them must look like the same run
-on the ideal simulated base, and a failing device must stop its robot with a named fault.
+the world process, bound to the pybullet bodies. A run on ideal devices (``robot.device.ideal:
+true``: world-frame odometry, one sample per step) must look like the same run on the simulated
+base; a run on the default hardware-like devices (odometry from boot, every 10 ms encoder
+sample, EKF origins at boot) must succeed as it does, within honest tolerances (measured, see
+``_close_run``); a failing device must stop its robot with a named fault.
 """
 
 from __future__ import annotations
@@ -33,15 +36,36 @@ def _same_run(rep: dict, ref: dict) -> None:
     assert all(r["driver_fault"] is None for r in rep["robots"].values())
 
 
+def _close_run(rep: dict, ref: dict) -> None:
+    """Hardware-like devices against the simulated base: the same success, no collisions, and a formation error
+    within 0.15 m of it. Not the tracks: each device's own sampling (ten 10 ms encoder samples a step, EKF fixes
+    relative to each rover's boot) moves the estimates by up to 0.5 m (measured: formation RMS 0.54-0.61 m on CAN,
+    0.57 m on MAVLink, against 0.56 m; the closest approach 2.09-2.29 m against 2.47 m), so the closest approach
+    is only bounded from below (the slots are 3-4 m apart; 1.5 m is three radii)."""
+    assert rep["success"] and rep["late_steps"] == 0, rep
+    assert rep["collisions"] == {"robot_robot": 0, "robot_obstacle": 0}
+    assert rep["leader_time_to_goal_s"] == pytest.approx(ref["leader_time_to_goal_s"], abs=1.5)
+    assert rep["formation_error_rms_m"] == pytest.approx(ref["formation_error_rms_m"], abs=0.15)
+    assert rep["min_robot_distance_m"] > 1.5
+    assert all(r["driver_fault"] is None for r in rep["robots"].values())
+
+
+def _ideal(d: dict) -> dict:
+    d["robot"]["device"] = {"ideal": True}
+    return d
+
+
 @pytest.mark.fleet
 @pytest.mark.parametrize("driver", ["can", "mavlink"])
-def test_fleet_on_simulated_hardware_matches_the_simulated_base(tmp_path, sim_run, driver):
+@pytest.mark.parametrize("ideal", [True, False], ids=["ideal", "hardware-like"])
+def test_fleet_on_simulated_hardware_matches_the_simulated_base(tmp_path, sim_run, driver, ideal):
     extra = ["--can-log"] if driver == "can" else []
-    proc, rep = run_fleet(write_scenario(tmp_path / "d.yaml", scenario_dict()), tmp_path / "out", "--driver", driver,
+    d = _ideal(scenario_dict()) if ideal else scenario_dict()
+    proc, rep = run_fleet(write_scenario(tmp_path / "d.yaml", d), tmp_path / "out", "--driver", driver,
                           "--no-plots", *extra)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert set(rep["drivers"].values()) == {driver}
-    _same_run(rep, sim_run)
+    (_same_run if ideal else _close_run)(rep, sim_run)
     devices = (tmp_path / "out" / "devices.json").read_text()
     assert ("/dev/pts/" if driver == "can" else "udpout:127.0.0.1:") in devices
     if driver == "can":  # every robot's bus, logged by python-can, decodes with the vendor's DBC
@@ -50,8 +74,8 @@ def test_fleet_on_simulated_hardware_matches_the_simulated_base(tmp_path, sim_ru
             assert kinds["Set_Input_Vel"] > 200 and kinds["Heartbeat"] > 200 and kinds["Get_Encoder_Estimates"] > 200
             assert kinds["Set_Axis_State"] >= 4  # closed loop at start, IDLE at the end, for both axes
     if driver == "mavlink":  # the autopilot's LOCAL_POSITION_NED feeds every estimator
-        for r in rep["robots"].values():
-            assert r["fixes"]["used"] > 100 and r["estimator_rmse_m"] < 0.15
+        for r in rep["robots"].values():  # hardware-like: each rover's fixes relative to its own boot (no datum)
+            assert r["fixes"]["used"] > 100 and r["estimator_rmse_m"] < (0.15 if ideal else 0.6)
 
 
 def _logged_messages(path) -> dict[str, int]:
@@ -103,7 +127,7 @@ def test_bad_device_settings_and_flags_are_one_line_errors(tmp_path, diamond):
 @pytest.mark.fleet
 def test_mixed_fleet_one_driver_of_each_kind(tmp_path, sim_run):
     """Leader on MAVLink, followers on CAN, a bridged Jackal and the simulated base: the same agent code."""
-    d = scenario_dict()
+    d = _ideal(scenario_dict())  # compared with the simulated base on its tracks: test_hardware_like has the rest
     for r, driver in zip(d["robots"], ("mavlink", "can", "jackal", "sim")):
         r["driver"] = driver
     out = tmp_path / "out"

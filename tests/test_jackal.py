@@ -139,12 +139,14 @@ def sessions():
 
 
 class Rig:
-    """A simulated Jackal on the world's session and a driver for it on the agent's."""
+    """A simulated Jackal on the world's session and a driver for it on the agent's; the ideal device (one odometry
+    message per report, world-frame poses) unless ``ideal=False`` (the default device: tests/test_devices_hw_jackal.py)."""
 
-    def __init__(self, sessions, tmp_path, limits: DriverLimits = WIDE, **cfg):
+    def __init__(self, sessions, tmp_path, limits: DriverLimits = WIDE, ideal: bool = True, **cfg):
         self.s_agent, self.s_world = sessions
         robot = RobotConfig(id=2, role="follower", pose=(1.0, -2.0, 0.5))
-        self.device = JackalDevice(robot, run_dir=tmp_path, session=self.s_world, namespace=f"test{next(_ns)}/robot2")
+        self.device = JackalDevice(robot, run_dir=tmp_path, session=self.s_world, namespace=f"test{next(_ns)}/robot2",
+                                   device={"ideal": ideal})
         self.malformed: list[str] = []
         self.odoms: list = []
         self.driver = JackalDriver(2, limits, session=self.s_agent, on_malformed=self.malformed.append,
@@ -231,10 +233,19 @@ def test_device_odometry_reaches_read_with_speeds_pose_and_stamp(rig):
     assert rig.odoms[-1] == odo and rig.driver.fault is None
 
 
+def test_the_default_device_reports_odometry_from_where_it_booted(sessions, tmp_path):
+    """Hardware-like by default: the robot booted at its pose (1, -2, 0.5 rad), so its odometry starts at (0, 0, 0)."""
+    r = Rig(sessions, tmp_path, ideal=False).start()
+    try:
+        assert r.driver.read().pose == pytest.approx((0.0, 0.0, 0.0), abs=1e-9)
+    finally:
+        r.close()
+
+
 def test_device_cmd_timeout_stops_the_body_in_lockstep_time(sessions, tmp_path):
     s_agent, s_world = sessions
     device = JackalDevice(RobotConfig(id=5, role="leader", pose=(0.0, 0.0, 0.0)), run_dir=tmp_path, session=s_world,
-                          namespace=f"test{next(_ns)}/robot5")
+                          namespace=f"test{next(_ns)}/robot5", device={"ideal": True})
     device.start()
     device.lockstep(0.0)
     pub = s_agent.declare_publisher(device.cmd_key)
@@ -385,7 +396,7 @@ def test_device_odometry_noise_is_seeded(sessions):
     robot = RobotConfig(id=1, role="leader", pose=(0.0, 0.0, 0.0), odom_noise=(0.1, 0.05))
     reported = []
     for _ in range(2):
-        d = JackalDevice(robot, session=sessions[1], seed=7)
+        d = JackalDevice(robot, session=sessions[1], seed=7, device={"ideal": True})
         d.report(0.1, Body(1.0, 2.0, 0.3, 0.5, 0.2))
         reported.append(d.body)
     assert reported[0] == reported[1] and (reported[0].x, reported[0].y, reported[0].yaw) == (1.0, 2.0, 0.3)

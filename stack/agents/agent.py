@@ -71,10 +71,11 @@ class AgentConfig:
     """Seed of every random source of this agent; defaults to the scenario's."""
     sensor_timeout_s: float = 30.0
     """Lock-step: give up (zero, exit) if the world sends nothing for this long."""
-    odom_origin: str = "site"
-    """Where the driver's odom frame is in the site frame (``frames.OdomFrame``): ``site`` (today's simulated
-    devices report world-frame odometry), ``boot`` (odom (0, 0, 0) is the start pose: the device booted
-    there; right after a restart too) or ``first`` (the first sample is at the start pose; fresh starts only)."""
+    odom_origin: str | None = None
+    """Where the driver's odom frame is in the site frame (``frames.OdomFrame``): ``site``, ``boot`` (odom (0, 0, 0)
+    is the start pose: the device booted there; right after a restart too), ``boot-position`` (origin at the start
+    position, headings the site's: an ArduPilot EKF origin) or ``first`` (the first sample is at the start pose;
+    fresh starts only). None: the robot's own, resolved from the scenario (``RobotConfig.odom_origin``)."""
     stop: threading.Event = field(default_factory=threading.Event)
     """Set to end the loop (signal handlers set it)."""
 
@@ -105,7 +106,7 @@ class Agent:
         self.keys = Keys(cfg.fleet)
         self.dt = sc.dt
         self.pipeline = StepPipeline(sc, self.id, policy=cfg.policy, seed=cfg.seed,
-                                     config=StepConfig(odom_origin=cfg.odom_origin))
+                                     config=StepConfig(odom_origin=cfg.odom_origin or self.robot.odom_origin))
         self.malformed: dict[str, int] = {}
         self.sent = 0
         self.seq = 0
@@ -349,16 +350,18 @@ class Agent:
 
     def _take_odometry(self, k: int, t: float, n_device: int | None) -> tuple[OdomSample, ...]:
         """Lock-step (caller holds the lock): a step-carrying driver's samples up to step k at their own sim
-        time; a device's newest ``n_device`` samples at the step's time, older ones dropped (strays)."""
+        time; a device's newest ``n_device`` samples spread evenly over the step just ended (the newest at its
+        end: a 100 Hz encoder's ten samples each predict over their own 10 ms), older ones dropped (strays)."""
         q = self._in.odometry
         if self.driver.answers_steps:
             items = [e for e in q if e[0].step <= k]
             rest = [e for e in q if e[0].step > k]
             times = [e[0].stamp for e in items]
-        else:
+        else:  # a device's samples of the step just ended: spread over it at their rate, the newest at t
             items = list(q)[len(q) - min(n_device or 0, len(q)):]
             rest = []
-            times = [t] * len(items)
+            n = len(items)
+            times = [t - self.dt * (n - 1 - i) / n for i in range(n)]
         q.clear()
         q.extend(rest)
         return tuple(_sample(odo, fix, ts) for (odo, fix, _), ts in zip(items, times))

@@ -8,6 +8,9 @@ in its odom frame; a Jackal's odom frame is (0, 0, 0) where it booted). The agen
 - ``boot``: the odom frame's origin is the robot's start pose (the device booted there): T = start pose.
   Right at a fresh start and after an agent restart alike (the device did not reboot, its odom frame is the
   one it booted with); the hardware case.
+- ``boot-position``: the odom frame's origin is the robot's start position, its axes the site's: T = (x0, y0, 0).
+  An ArduPilot vehicle whose EKF origin is where it booted: ``LOCAL_POSITION_NED`` is north/east of that origin,
+  its heading is absolute. Right at a fresh start and after a restart, as ``boot``.
 - ``site``: the odom frame is the site frame: T = identity. Today's simulated devices (world-frame odometry),
   a rover whose EKF origin is the site datum. Right at a fresh start and after a restart.
 - ``first``: the robot is at its start pose at the agent's first sample, whatever its odom frame:
@@ -31,7 +34,7 @@ import math
 
 from ..estimation.pose import wrap
 
-ODOM_ORIGINS = ("site", "boot", "first")
+ODOM_ORIGINS = ("site", "boot", "boot-position", "first")
 
 Pose2 = tuple[float, float, float]
 
@@ -66,6 +69,8 @@ class OdomFrame:
                 self.T = (0.0, 0.0, 0.0)
             elif self.origin == "boot":
                 self.T = self.start
+            elif self.origin == "boot-position":
+                self.T = (self.start[0], self.start[1], 0.0)
             else:
                 self.T = compose(self.start, inverse(odom_pose))
         return self.start if odom_pose is None else compose(self.T, odom_pose)

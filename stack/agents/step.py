@@ -108,7 +108,8 @@ class StepConfig:
     max_gap_s: float = 0.5
     """The longest interval between two odometry samples one prediction covers."""
     odom_origin: str = "site"
-    """Where the odom frame is in the site frame: ``site``, ``boot`` or ``first`` (``frames.OdomFrame``)."""
+    """Where the odom frame is in the site frame: ``site``, ``boot``, ``boot-position`` or ``first``
+    (``frames.OdomFrame``); the agent passes the robot's resolved ``RobotConfig.odom_origin``."""
 
 
 @dataclass

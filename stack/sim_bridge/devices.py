@@ -30,9 +30,10 @@ Lifecycle, driven by the world (``WorldServer``):
 4. ``close()``: the device is gone (the endpoint disappears).
 
 Each device has a typed config (``config_class``, a ``DeviceConfig``): how real the device is.
-``ideal: true`` (the default for now) keeps the kind simulator (world-frame odometry, one
-sample per step); ``ideal: false`` turns on what real hardware does (the device's own frames,
-rates, clock and losses; see each device's config). The settings come from the robot's
+``ideal: false`` (the default) does what real hardware does (the device's own frames, rates,
+clock and losses; see each device's config), so what passes here is what drives a real robot;
+``ideal: true`` keeps the kind simulator (world-frame odometry, one sample per step) for
+comparisons. The robot's ``odom_origin: auto`` follows (``boot`` for a hardware-like device). The settings come from the robot's
 ``device:`` mapping in the scenario (``device=`` here overrides it); unknown keys and bad
 values are a one-line ``DeviceError`` naming the robot and the field.
 
@@ -76,8 +77,9 @@ class DeviceError(RuntimeError):
 class DeviceConfig:
     """What every simulated device's settings have (subclassed per device)."""
 
-    ideal: bool = True
-    """True: today's kind simulator (the other settings are not used); False: behave as the hardware does."""
+    ideal: bool = False
+    """False (the default): behave as the hardware does; True: the kind simulator (world-frame odometry, one sample
+    per step; the other settings are not used), for comparisons."""
 
     def __post_init__(self):
         if not isinstance(self.ideal, bool):
@@ -187,6 +189,11 @@ class HostedDevice(ABC):
     @abstractmethod
     def driver_params(self) -> dict[str, Any]:
         """Settings the agent's driver needs to find this device (e.g. ``{"channel": ...}``)."""
+
+    def fleet_params(self) -> dict[str, Any]:
+        """What the world tells the fleet to hand the agent's driver (``devices.json``): ``driver_params`` and
+        whatever else the simulated site decides for it (a rover's datum)."""
+        return self.driver_params()
 
     @abstractmethod
     def take_commands(self, t_sim: float) -> None:

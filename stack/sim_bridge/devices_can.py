@@ -8,7 +8,7 @@ are the body speeds the world moves the body with; their encoder estimates and h
 go out after the world has moved the body, so they describe it at the end of the step.
 
 Its settings (``OdriveDeviceConfig``, the robot's ``device:``): hardware-like (``ideal:
-false``) each axis's encoder reads its shaft angle at power-up (an absolute encoder: a
+false``, the default) each axis's encoder reads its shaft angle at power-up (an absolute encoder: a
 fraction of a turn, seeded, or ``power_up_pos_rev``) and counts turns from there, and every
 encoder estimate of a step goes out at its own time (100 Hz, as on the bus), not only the
 newest. Ideal: positions from 0, the newest estimate per step.
@@ -28,7 +28,7 @@ from .odrive_sim import ODrivePair, SlcanPtyBus
 
 @dataclass(frozen=True)
 class OdriveDeviceConfig(DeviceConfig):
-    """How the simulated ODrive pair behaves (scenario: the robot's ``device:``); used only with ``ideal: false``."""
+    """How the simulated ODrive pair behaves (scenario: the robot's ``device:``); used only with ``ideal: false`` (the default)."""
 
     power_up_pos_rev: tuple[float, float] | None = None
     """[rev] (left, right) encoder positions at power-up; None: each axis's shaft angle, a seeded fraction of a turn."""

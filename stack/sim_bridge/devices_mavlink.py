@@ -10,7 +10,7 @@ The rover accelerates like the robot's simulated base (``base.wheel_accel`` x wh
 Its settings (``RoverDeviceConfig``, the robot's ``device:``): ``datum`` places the site on
 the globe for GLOBAL_POSITION_INT (both modes; default the scenario's ``site.datum``, which the
 world passes as ``site_datum``, else the driver's ``datum`` setting, else ArduPilot SITL's home);
-hardware-like (``ideal: false``) the EKF origin is where the rover booted (``ekf_origin: boot``,
+hardware-like (``ideal: false``, the default) the EKF origin is where the rover booted (``ekf_origin: boot``,
 as ArduPilot sets it at its first GPS fix), so LOCAL_POSITION_NED is relative to that, not to the site origin; ``SET_GPS_GLOBAL_ORIGIN``
 moves it in either mode.
 """
@@ -78,6 +78,15 @@ class RoverDevice(HostedDevice):
     def driver_params(self) -> dict:
         return {"connection": f"udpout:127.0.0.1:{self.rover.port}",
                 "connect_timeout": max(self.config.connect_timeout, SIM_OPEN_TIMEOUT_S)}
+
+    def fleet_params(self) -> dict:
+        """What the fleet hands the agent's driver: the link, and the site's datum where the driver has none of its
+        own (the scenario's ``site.datum``, else the rover's, SITL's home: the simulated site is there), so the
+        driver places the rover by GLOBAL_POSITION_INT in the site frame whatever its EKF origin; an ideal rover
+        without a datum keeps LOCAL_POSITION_NED fixes (its EKF origin is the site's)."""
+        own = self.robot.driver_params.get(self.kind, {}).get("datum")
+        placed = own is None and (self.datum is not None or not self.device_config.ideal)  # ideal, no datum: as before
+        return self.driver_params() | ({"datum": list(self.rover.datum)} if placed else {})
 
     def take_commands(self, t_sim: float) -> None:
         if self.in_lockstep:

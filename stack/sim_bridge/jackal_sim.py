@@ -18,7 +18,7 @@ step per 20 ms tick), and the J100's ``cmd_vel`` timeout of 0.5 s: a target olde
 (device time) becomes zero. Velocity limits act on the body speeds, as the controller's
 speed limiter does, so wheel separation and radius do not enter.
 
-Odometry, ideal (the default, ``device: {ideal: true}``): ``report`` publishes one message per world step at the end of the step (lock-step),
+Odometry, ideal (``device: {ideal: true}``, for comparisons): ``report`` publishes one message per world step at the end of the step (lock-step),
 stamped with the device time; before lock-step (and all along in real time) a thread
 publishes at 50 Hz from the newest body the world reported, stamped with the wall-clock
 device time, so a driver can open and see odometry. The pose is the body's pose in the
@@ -28,7 +28,7 @@ odometry. The twist is the body's (v, w) as the world moved it, with the robot's
 ``odom_noise`` (v_std, w_std) added on the step's report (seeded by the scenario's seed).
 Topic names come from the scenario's ``jackal`` driver settings, so driver and device agree.
 
-Hardware-like (``JackalDeviceConfig(ideal=False)``, the robot's ``device:`` settings): odometry
+Hardware-like (the default, ``JackalDeviceConfig(ideal=False)``, the robot's ``device:`` settings): odometry
 at ``odom_rate_hz`` (50 Hz, robot_localization's rate) in the robot's odom frame, which is
 (0, 0, 0) where it booted (its start pose; ``odom_frame: site`` keeps the world frame), its
 pose dead-reckoned from the twist it reports (so it drifts with ``odom_noise``); the lidar at
@@ -83,20 +83,22 @@ ODOM_RATE = 50.0  # [Hz] robot_localization's EKF frequency on the Jackal
 ACCEL_MAX = 20.0  # [m/s^2] control.yaml linear.x.max_acceleration
 ALPHA_MAX = 25.0  # [rad/s^2] control.yaml angular.z.max_acceleration
 CMD_TIMEOUT = 0.5  # [s] the J100's cmd_vel timeout (the controller stops)
+LIDAR_RATE = 25.0  # [Hz] a SICK LMS111 (the Jackal's stock 2D lidar) at its slower setting
 NODE_NAME = "jackal_sim"  # the simulated robot's ROS 2 node (rmw_zenoh transport)
 
 
 @dataclass(frozen=True)
 class JackalDeviceConfig(DeviceConfig):
-    """How the simulated Jackal behaves (scenario: the robot's ``device:``); used only with ``ideal: false``."""
+    """How the simulated Jackal behaves (scenario: the robot's ``device:``); used only with ``ideal: false`` (the default)."""
 
     odom_rate_hz: float = ODOM_RATE
     """[Hz] rate of ``platform/odom/filtered`` (robot_localization's EKF on a Jackal: 50 Hz)."""
     odom_frame: str = "boot"
     """``boot``: odometry in the robot's odom frame, (0, 0, 0) where it booted (the hardware);
     ``site``: in the world (site) frame."""
-    lidar_rate_hz: float = 10.0
-    """[Hz] scan rate of the 2D lidar (SICK LMS111: 25/50, Hokuyo UST-10: 40, RPLidar A1: 5-15)."""
+    lidar_rate_hz: float = LIDAR_RATE
+    """[Hz] scan rate of the 2D lidar (SICK LMS111: 25/50, Hokuyo UST-10: 40, RPLidar A1: 5-15); default 25 Hz,
+    the slowest of the Jackal's stock lidars (an LMS111 at 25 Hz), not the control rate."""
     lidar_beams: int | None = None
     """Beams per scan; None: the scenario's lidar."""
     lidar_fov_deg: float | None = None

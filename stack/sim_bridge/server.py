@@ -33,6 +33,7 @@ from ..comm import Keys, MessageError, decode, encode
 from ..comm.lockstep import CommandBarrier
 from ..comm.messages import Answer, Clock, CmdVel, FaultAck, FaultRequest, Fix, Imu, Odom, Scan, Truth, WorldStatus
 from ..scenario import Scenario, fix_due, slot_position
+from .device_streams import relative_pose
 from .devices import Body, HostedDevice, make_device
 from .world import World
 
@@ -80,6 +81,14 @@ class WorldConfig:
     stop: threading.Event = field(default_factory=threading.Event)
 
 
+def sim_odom_origin(robot) -> tuple[float, float, float] | None:
+    """Where the world's own ``sim`` base's odom frame is (world frame), by the robot's resolved ``odom_origin``:
+    None for ``site`` (the ideal base: world-frame odometry), the start pose where it booted for ``boot`` and ``first``, the
+    start position with the world's axes for ``boot-position``."""
+    x, y, yaw = robot.pose
+    return {"site": None, "boot-position": (x, y, 0.0)}.get(robot.odom_origin, (x, y, yaw))
+
+
 class WorldServer:
     def __init__(self, cfg: WorldConfig, session: zenoh.Session):
         self.cfg = cfg
@@ -102,6 +111,7 @@ class WorldServer:
         self.late_steps = 0
         self.devices: dict[int, HostedDevice] = {}  # robots whose driver talks to a simulated device
         self._odom_base: dict[int, int] = {}  # device -> odom_sent when lock-step began
+        self._sim_odom_origin = {r.id: sim_odom_origin(r) for r in self.sc.robots}
 
     # --- callbacks -------------------------------------------------------------------
     def _decode_answer(self, sample: zenoh.Sample, kind, hosted: bool):
@@ -231,13 +241,17 @@ class WorldServer:
         for r in self.sc.robots:
             if r.driver == "sim":
                 continue
-            dev = make_device(r.driver, r, run_dir=self.cfg.out, session=self.s, keys=self.keys, seed=self.sc.seed)
+            extra = {"site_datum": self.sc.site.datum} if r.driver == "mavlink" else {}
+            dev = make_device(r.driver, r, run_dir=self.cfg.out, session=self.s, keys=self.keys, seed=self.sc.seed,
+                              **extra)
+            # a device that scans at its own times casts them at its body's pose then
+            dev.ray_caster = lambda x, y, yaw, angles, rid=r.id: self.world.lidar_at(rid, (x, y, yaw), angles)
             self.devices[r.id] = dev  # closed by run() whatever happens next
             dev.start()
             log.info("world: robot %d: simulated %s device: %s", r.id, r.driver, dev.driver_params())
         if self.cfg.out is not None:
             self.cfg.out.mkdir(parents=True, exist_ok=True)
-            doc = {str(rid): {"driver": dev.kind, "settings": dev.driver_params()} for rid, dev in self.devices.items()}
+            doc = {str(rid): {"driver": dev.kind, "settings": dev.fleet_params()} for rid, dev in self.devices.items()}
             tmp = self.cfg.out / "devices.json.tmp"
             tmp.write_text(json.dumps(doc, indent=2))
             tmp.replace(self.cfg.out / "devices.json")  # whole or not at all: the fleet reads it as soon as it exists
@@ -333,7 +347,9 @@ class WorldServer:
         for rid in self.ids:
             robot = sc.robots[w.index[rid]]
             if rid not in self.devices:
-                v, om, (ox, oy, oyaw) = w.odometry(rid, dt)
+                v, om, pose = w.odometry(rid, dt)
+                origin = self._sim_odom_origin[rid]
+                ox, oy, oyaw = relative_pose(origin, pose) if origin is not None else pose  # the base's odom frame
                 pubs[(rid, "odom")].put(encode(Odom(id=rid, step=self.k, stamp=stamp, v=v, w=om, x=ox, y=oy, yaw=oyaw)))
                 pubs[(rid, "imu")].put(encode(Imu(id=rid, step=self.k, stamp=stamp, wz=w.gyro(rid))))
             if fix_due(robot, self.k, dt):
