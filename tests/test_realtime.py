@@ -49,7 +49,8 @@ def _move_body(dev: JackalDevice, sc, stop: threading.Event, truth: list) -> Non
 def test_real_time_jackal_agent_with_a_15_hz_lidar_reaches_its_goal():
     d = scenario_dict()
     d["formation"]["goal"] = list(GOAL)
-    d["robots"][0] |= {"driver": "jackal", "jackal": {"namespace": "rt15/robot0"}}
+    d["robots"][0] |= {"driver": "jackal", "jackal": {"namespace": "rt15/robot0"},
+                       "device": {"jackal": {"lidar_rate_hz": LIDAR_HZ}}}  # a hardware-like Jackal, its lidar at 15 Hz
     sc = parse_scenario(d)
     ep, fleet = free_tcp_endpoint(), "rt15"
     stop_world = threading.Event()
