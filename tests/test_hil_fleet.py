@@ -25,14 +25,17 @@ def sim_run(tmp_path_factory):
     return rep
 
 
-def _same_run(rep: dict, ref: dict) -> None:
+def _same_run(rep: dict, ref: dict, closest: float = 0.2) -> None:
+    """Ideal devices against the simulated base. ``closest``: how far the closest approach may differ (the rover's
+    10 Hz position fixes carry 0.3 m of noise that the simulated base's estimate does not: measured 2.25 m against
+    2.47 m, the same every run)."""
     assert rep["success"], rep
     # a step the world took without waiting for an agent (one stalled > 2 s wall) changes the run itself
     assert rep["late_steps"] == 0 == ref["late_steps"], (rep["late_steps"], ref["late_steps"])
     assert rep["collisions"] == {"robot_robot": 0, "robot_obstacle": 0}
     assert rep["leader_time_to_goal_s"] == pytest.approx(ref["leader_time_to_goal_s"], abs=1.5)
     assert rep["formation_error_rms_m"] == pytest.approx(ref["formation_error_rms_m"], abs=0.1)
-    assert rep["min_robot_distance_m"] == pytest.approx(ref["min_robot_distance_m"], abs=0.2)
+    assert rep["min_robot_distance_m"] == pytest.approx(ref["min_robot_distance_m"], abs=closest)
     assert all(r["driver_fault"] is None for r in rep["robots"].values())
 
 
@@ -65,7 +68,10 @@ def test_fleet_on_simulated_hardware_matches_the_simulated_base(tmp_path, sim_ru
                           "--no-plots", *extra)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert set(rep["drivers"].values()) == {driver}
-    (_same_run if ideal else _close_run)(rep, sim_run)
+    if ideal:
+        _same_run(rep, sim_run, closest=0.3 if driver == "mavlink" else 0.2)
+    else:
+        _close_run(rep, sim_run)
     devices = (tmp_path / "out" / "devices.json").read_text()
     assert ("/dev/pts/" if driver == "can" else "udpout:127.0.0.1:") in devices
     if driver == "can":  # every robot's bus, logged by python-can, decodes with the vendor's DBC
