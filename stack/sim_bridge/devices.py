@@ -126,8 +126,10 @@ class HostedDevice(ABC):
     config_class: type[DeviceConfig] = DeviceConfig
 
     def __init__(self, robot, *, run_dir: Path | None = None, session: Any = None, keys: Any = None, seed: int = 0,
-                 device: Mapping[str, Any] | DeviceConfig | None = None):
+                 device: Mapping[str, Any] | DeviceConfig | None = None,
+                 site_datum: tuple[float, float, float] | None = None):
         self.robot = robot
+        self.site_datum = site_datum  # the scenario's site.datum: where the site frame is on the globe (GNSS devices)
         self.robot_id = robot.id
         self.run_dir = Path(run_dir) if run_dir is not None else None
         self.session = session

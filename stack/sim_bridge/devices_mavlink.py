@@ -51,7 +51,7 @@ class RoverDevice(HostedDevice):
 
     def __init__(self, robot, *, site_datum: Datum | None = None, **kw):
         """``site_datum``: the scenario's ``site.datum`` (the rover's ``datum`` when its settings name none)."""
-        super().__init__(robot, **kw)
+        super().__init__(robot, site_datum=site_datum, **kw)
         self.config = self.driver_config(MavlinkConfig)
         try:
             site = check_datum(site_datum, "site.datum") if site_datum is not None else None

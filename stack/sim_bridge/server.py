@@ -34,7 +34,7 @@ from ..comm.lockstep import CommandBarrier
 from ..comm.messages import Answer, Clock, CmdVel, FaultAck, FaultRequest, Fix, Imu, Odom, Scan, Truth, WorldStatus
 from ..scenario import Scenario, fix_due, slot_position
 from .device_streams import relative_pose
-from .devices import Body, HostedDevice, make_device
+from .devices import Body, HostedDevice, hosted, make_device
 from .world import World
 
 log = logging.getLogger("stack.world")
@@ -237,13 +237,14 @@ class WorldServer:
             self.world.close()
 
     def _start_devices(self) -> None:
-        """A simulated device for every robot whose driver is not ``sim``; ``devices.json`` says where."""
+        """A simulated device for every robot whose driver has one (the registry says; the world's own base is
+        the rest); ``devices.json`` says where."""
+        with_device = set(hosted())
         for r in self.sc.robots:
-            if r.driver == "sim":
+            if r.driver not in with_device:
                 continue
-            extra = {"site_datum": self.sc.site.datum} if r.driver == "mavlink" else {}
             dev = make_device(r.driver, r, run_dir=self.cfg.out, session=self.s, keys=self.keys, seed=self.sc.seed,
-                              **extra)
+                              site_datum=self.sc.site.datum)
             # a device that scans at its own times casts them at its body's pose then
             dev.ray_caster = lambda x, y, yaw, angles, rid=r.id: self.world.lidar_at(rid, (x, y, yaw), angles)
             self.devices[r.id] = dev  # closed by run() whatever happens next
