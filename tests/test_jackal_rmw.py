@@ -89,17 +89,19 @@ def test_driver_drives_a_fake_rmw_zenoh_robot(sessions):
         assert robot.dropped == {} and seqs == list(range(seqs[0], seqs[0] + len(seqs)))
         assert {a[2] for a in robot.accepted} == {drv._pub.gid} and abs(robot.accepted[-1][1] - time.time_ns()) < 5e9
         assert wait_for(lambda: "/robot2/stack_agent" in graph.nodes())
-        assert [e.node for e in graph.endpoints("/robot2/cmd_vel", rz.PUBLISHER)] == ["/robot2/stack_agent"]
-        subs = graph.endpoints("/robot2/platform/odom/filtered", rz.SUBSCRIPTION)
-        assert [(e.node, e.type_hash) for e in subs] == [("/robot2/stack_agent", JAZZY_HASHES[ODOMETRY])]
-        scan = graph.endpoints("/robot2/sensors/lidar2d_0/scan", rz.SUBSCRIPTION)
-        assert [e.qos for e in scan] == [rz.SENSOR_QOS]
+        # each entity's token arrives on its own: wait for each, as `ros2 topic info` run a moment later would see it
+        assert wait_for(lambda: [e.node for e in graph.endpoints("/robot2/cmd_vel", rz.PUBLISHER)] == ["/robot2/stack_agent"])
+        odom = ("/robot2/platform/odom/filtered", rz.SUBSCRIPTION)
+        assert wait_for(lambda: [(e.node, e.type_hash) for e in graph.endpoints(*odom)]
+                        == [("/robot2/stack_agent", JAZZY_HASHES[ODOMETRY])]), graph.endpoints(*odom)
+        scan = ("/robot2/sensors/lidar2d_0/scan", rz.SUBSCRIPTION)
+        assert wait_for(lambda: [e.qos for e in graph.endpoints(*scan)] == [rz.SENSOR_QOS]), graph.endpoints(*scan)
         assert drv.fault is None and malformed == []
     finally:
         drv.close()
         robot.close()
     assert wait_for(lambda: "/robot2/stack_agent" not in graph.nodes()), graph.nodes()  # the tokens went with it
-    assert graph.endpoints("/robot2/cmd_vel") == []
+    assert wait_for(lambda: graph.endpoints("/robot2/cmd_vel") == []), graph.endpoints("/robot2/cmd_vel")
     graph.close()
 
 
@@ -111,6 +113,7 @@ class Rig:
         settings = {"transport": transport}
         robot = RobotConfig(id=2, role="follower", pose=(1.0, -2.0, 0.5), driver_params={"jackal": settings},
                             lidar=LidarConfig(beams=180, fov=math.pi, range=5.0))
+        device = {"ideal": True} if device is None else device  # the transport is the point: world-frame odometry
         self.device = JackalDevice(robot, session=self.s_world, namespace=f"rmw{next(_ns)}/robot2", device=device)
         self.malformed: list[str] = []
         self.odoms: list = []
@@ -153,8 +156,8 @@ def test_driver_and_simulated_jackal_meet_on_rmw_zenoh_and_show_in_the_graph(ses
         want = {("cmd_vel", rz.PUBLISHER): ours, ("cmd_vel", rz.SUBSCRIPTION): theirs,
                 ("platform/odom/filtered", rz.PUBLISHER): theirs, ("platform/odom/filtered", rz.SUBSCRIPTION): ours,
                 ("sensors/lidar2d_0/scan", rz.PUBLISHER): theirs, ("sensors/lidar2d_0/scan", rz.SUBSCRIPTION): ours}
-        for (topic, kind), node in want.items():
-            assert [e.node for e in graph.endpoints(f"{ns}/{topic}", kind)] == [node], (topic, kind)
+        for (topic, kind), node in want.items():  # each entity's token arrives on its own
+            assert wait_for(lambda: [e.node for e in graph.endpoints(f"{ns}/{topic}", kind)] == [node]), (topic, kind)
         assert {e.qos for e in graph.endpoints(f"{ns}/sensors/lidar2d_0/scan")} == {rz.SENSOR_QOS}
         assert rig.malformed == [] and graph.counters == {}
     assert wait_for(lambda: not {ours, theirs} & graph.nodes()), graph.nodes()
@@ -250,6 +253,7 @@ def test_a_jackal_fleet_on_rmw_zenoh_matches_the_bridge(tmp_path):
     for transport in ("bridge", "rmw_zenoh"):
         d = scenario_dict()
         d["robot"]["jackal"] = {"transport": transport}
+        d["robot"]["device"] = {"ideal": True}  # the transports compared on one device (hardware-like: test_hil_fleet)
         out = tmp_path / transport
         proc, rep = run_fleet(write_scenario(tmp_path / f"{transport}.yaml", d), out, "--driver", "jackal", "--no-plots")
         assert proc.returncode == 0 and rep and rep["success"], proc.stdout[-3000:] + proc.stderr[-3000:]
