@@ -30,10 +30,14 @@ W = np.concatenate([np.zeros(100), RNG.uniform(-0.02, 0.02, 400), RNG.uniform(-4
 
 # --- kinematics -----------------------------------------------------------------------------------
 @pytest.mark.parametrize("dt", [0.1, 0.05, 1.0])
-def test_vectorised_and_scalar_arcs_agree_bit_for_bit(dt):
+def test_vectorised_and_scalar_arcs_agree(dt):
+    """The heading bit for bit (the wrap uses exact operations only); x and y to an ulp, since numpy's SIMD
+    sin/cos may round differently from the C library's (seen on one machine of this workplace, not another)."""
     xs, ys, yaws = arc_step_array(X, Y, YAW, V, W, dt)
     one = np.array([arc_step(*a, dt) for a in zip(X, Y, YAW, V, W)])
-    np.testing.assert_array_equal(np.column_stack([xs, ys, yaws]), one)
+    np.testing.assert_array_equal(yaws, one[:, 2])
+    np.testing.assert_array_max_ulp(xs, one[:, 0], maxulp=1)
+    np.testing.assert_array_max_ulp(ys, one[:, 1], maxulp=1)
 
 
 @pytest.mark.parametrize("w", [0.0, 1e-7, 0.3, -2.5])
@@ -112,7 +116,9 @@ def test_wrap_scalar_and_array_agree_and_land_in_the_half_open_interval():
 def test_polar_scalar_and_array_agree():
     d, b = polar_array(X, Y, YAW, X[::-1], Y[::-1])
     one = np.array([polar((x, y), yaw, (tx, ty)) for x, y, yaw, tx, ty in zip(X, Y, YAW, X[::-1], Y[::-1])])
-    np.testing.assert_array_equal(np.column_stack([d, b]), one)
+    np.testing.assert_array_equal(d, one[:, 0])
+    # numpy's arctan2 against libm's: an ulp of the angle before the heading is taken off (1e-15 rad at most)
+    np.testing.assert_allclose(b, one[:, 1], rtol=0, atol=1e-14)
     assert polar((1.0, 1.0), math.pi / 2, (1.0, 3.0)) == (2.0, 0.0)  # straight ahead
     assert polar((0.0, 0.0), 0.0, (0.0, -2.0)) == (2.0, -math.pi / 2)  # on the right
 
@@ -206,7 +212,7 @@ def test_vectorised_neighbour_polar_equals_the_scalar_view():
             view = neighbour_view((x[e, i], y[e, i]), yaw[e, i],
                                   [(x[e, j], y[e, j], 0.0, 0.0, 0.0, 0.0, None) for j in range(5) if j != i], 8.0)
             assert n[e, i] == len(view.polar)
-            np.testing.assert_array_equal(pol[e, i, : n[e, i]], view.polar)
+            np.testing.assert_allclose(pol[e, i, : n[e, i]], view.polar, rtol=0, atol=1e-14)  # arctan2: an ulp
     assert 0 < n.sum() < 6 * 5 * 4  # some in range, some not
 
 

@@ -10,16 +10,26 @@ import numpy as np
 __all__ = ["Slotlike", "polar", "polar_array", "slot_offset", "slot_position", "wrap", "wrap_array"]
 
 
+_TAU = 2.0 * math.pi
+
+
 def wrap(a: float) -> float:
-    """Angle to (-pi, pi]: atan2(sin a, cos a), with -pi folded to +pi."""
-    a = math.atan2(math.sin(a), math.cos(a))
-    return a if a > -math.pi else math.pi
+    """Angle to (-pi, pi]: a itself when it is already there, else a - 2 pi k (k = floor((a + pi) / 2 pi)),
+    with -pi folded to +pi. Only IEEE-exact operations, so :func:`wrap_array` gives the same bits on any
+    platform (numpy's SIMD sin/cos/arctan2 may differ from the C library's by an ulp; this does not use them)."""
+    a = float(a)
+    if -math.pi < a <= math.pi:
+        return a
+    r = a - _TAU * math.floor((a + math.pi) / _TAU)
+    return r if -math.pi < r <= math.pi else math.pi
 
 
 def wrap_array(a) -> np.ndarray:
-    """:func:`wrap` elementwise (the same values, bit for bit, on the same platform)."""
-    r = np.arctan2(np.sin(a), np.cos(a))
-    return np.where(r > -math.pi, r, math.pi)
+    """:func:`wrap` elementwise (the same values, bit for bit)."""
+    a = np.asarray(a, float)
+    inside = (a > -math.pi) & (a <= math.pi)
+    r = np.where(inside, a, a - _TAU * np.floor((a + math.pi) / _TAU))
+    return np.where((r > -math.pi) & (r <= math.pi), r, math.pi)
 
 
 def polar(frm: tuple[float, float], yaw: float, to: tuple[float, float]) -> tuple[float, float]:
@@ -29,7 +39,8 @@ def polar(frm: tuple[float, float], yaw: float, to: tuple[float, float]) -> tupl
 
 
 def polar_array(x, y, yaw, tx, ty) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`polar` elementwise over broadcast arrays (the same values, bit for bit)."""
+    """:func:`polar` elementwise over broadcast arrays (the same distances bit for bit; the bearings to an ulp
+    of numpy's arctan2 against the C library's, which may differ where numpy uses SIMD loops)."""
     dx, dy = np.asarray(tx, float) - x, np.asarray(ty, float) - y
     return np.sqrt(dx * dx + dy * dy), wrap_array(np.arctan2(dy, dx) - yaw)
 
