@@ -433,3 +433,20 @@ def test_absurd_but_finite_input_is_rolled_back():
     assert f.rejected_nan == 1
     np.testing.assert_array_equal(f.x, x)
     np.testing.assert_array_equal(f.P, P)
+
+
+def test_the_agent_takes_filterpys_ekf_without_the_rest_of_filterpy():
+    """stack/estimation/_filterpy.py: the agent's start-up imports filterpy's EKF module and not scipy.stats
+    (filterpy's package __init__ would), and the class is filterpy's own, the same object once filterpy is
+    imported the usual way; its log-likelihood (which needs filterpy.stats) still works."""
+    import subprocess
+    import sys
+
+    code = ("import sys; import stack.agents.cli, stack.policies.pid, stack.estimation.ekf as e\n"
+            "heavy = sorted(m for m in ('scipy.stats', 'scipy.ndimage', 'filterpy.kalman.UKF') if m in sys.modules)\n"
+            "import filterpy.kalman as fk\n"
+            "f = e.ExtendedKalmanFilter(2, 1)\n"
+            "print(heavy, e.ExtendedKalmanFilter is fk.ExtendedKalmanFilter, round(float(f.log_likelihood), 3))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["[]", "True", "-708.396"], out.stdout

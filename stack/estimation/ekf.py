@@ -49,10 +49,12 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from filterpy.kalman import ExtendedKalmanFilter
 
 from ..models.kinematics import arc_step, sinc
+from ._filterpy import extended_kalman_filter
 from .pose import Pose, wrap
+
+ExtendedKalmanFilter = extended_kalman_filter()  # filterpy's class, without the rest of filterpy (_filterpy.py)
 
 __all__ = ["EkfConfig", "PoseEKF", "motion", "motion_jacobian"]
 
