@@ -60,10 +60,30 @@ def kind_section(kind: str, reg: Registry) -> str:
     return "\n".join(parts)
 
 
+ROBOT_BLOCKS = (("ros_graph", "stack.agents.ros_graph:RosGraphConfig",
+                 "The agent's estimate, formation slot and goal as ROS 2 topics (docs/ros2.md); off by default"),)
+"""Per-robot settings blocks that belong to no plugin: (key, ``module:Class``, summary)."""
+
+
+def robot_section() -> str:
+    """The per-robot blocks of no plugin (``robot.<key>``, also per robot over the ``robot:`` defaults)."""
+    from .plugins import load
+
+    parts = ["## Robot settings\n"]
+    for key, ref, summary in ROBOT_BLOCKS:
+        lines = [f"### `robot.{key}`", "", summary + ".", "", f"Settings: `robot.{key}` (`{ref}`).", "",
+                 "| key | default | accepts | meaning |", "| --- | --- | --- | --- |"]
+        for k, default, accepted, doc in settings.rows(load(ref)):
+            lines.append(f"| `{k}` | {_cell(_value(default))} | {_cell(accepted)} | {_cell(doc)} |")
+        parts.append("\n".join(lines) + "\n")
+    return "\n".join(parts)
+
+
 def settings_markdown(only_builtin: bool = True) -> str:
     """The whole ``docs/settings.md``: every kind, every plugin (the built-ins: out-of-tree plugins vary
-    by installation)."""
+    by installation), then the robot settings of no plugin."""
     out = [HEADER]
     for kind, reg in registries().items():
         out.append(kind_section(kind, reg.builtins() if only_builtin else reg))
+    out.append(robot_section())
     return "\n".join(out)

@@ -132,6 +132,9 @@ class RobotConfig:
     where the simulated device is ideal (``robot.device.ideal``), else the device's own frame (``boot``; a
     ``mavlink`` rover ``boot-position``, or ``site`` with ``ekf_origin: site``; a ``jackal`` with
     ``odom_frame: site``, ``site``). The world's own ``sim`` base publishes its odometry in this frame."""
+    ros_graph: Any = None
+    """``robot.ros_graph`` resolved (``stack.agents.ros_graph.RosGraphConfig``): the agent's estimate, slot and goal
+    as ROS 2 topics (docs/ros2.md); None where the scenario gives none (off)."""
     settings: Mapping[str, Any] = field(default_factory=dict)
     """Policy settings key (``robot.<key>``) -> its resolved config dataclass: every block the scenario
     gives, and this robot's policy and ``pid`` (situation 1) with their defaults where it gives none."""
@@ -363,7 +366,7 @@ def _max(rd: "_Reader", v: int, hi: int, path: str) -> int:
 
 
 _CORE_KEYS = {"radius", "v_max", "w_max", "lidar", "odom_noise", "imu_noise", "fix", "comm_range", "cmd_timeout", "base",
-              "policy", "driver", "device", "odom_origin"}
+              "policy", "driver", "device", "odom_origin", "ros_graph"}
 
 ODOM_ORIGINS = ("auto", "site", "boot", "boot-position", "first")
 
@@ -395,7 +398,19 @@ def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict
         out["device_blocks"] = _device_blocks(rd, d["device"], f"{path}.device", out.get("device_blocks", {}))
     if "odom_origin" in d:
         out["odom_origin"] = rd.choice(d["odom_origin"], f"{path}.odom_origin", ODOM_ORIGINS)
+    if "ros_graph" in d:
+        out["ros_graph"] = _ros_graph(rd, d["ros_graph"], f"{path}.ros_graph", out.get("ros_graph"))
     return out
+
+
+def _ros_graph(rd: _Reader, value: Any, path: str, prev):
+    """``robot.ros_graph`` over the defaults' (``prev``); imported only when a scenario has one."""
+    from .agents.ros_graph import RosGraphConfig
+
+    try:
+        return settings.read(RosGraphConfig, value, path, prev)
+    except settings.SettingError as e:
+        raise rd.fail(e.path, e.what) from None
 
 
 def _device_blocks(rd: _Reader, value: Any, path: str, base: Mapping[str, Any]) -> dict[str, Any]:

@@ -91,6 +91,12 @@ class Odometry(IdlStruct, typename="nav_msgs::msg::dds_::Odometry_"):
 
 
 @dataclass
+class PoseStamped(IdlStruct, typename="geometry_msgs::msg::dds_::PoseStamped_"):
+    header: Header
+    pose: Pose
+
+
+@dataclass
 class LaserScan(IdlStruct, typename="sensor_msgs::msg::dds_::LaserScan_"):
     header: Header
     angle_min: float32
@@ -157,6 +163,23 @@ def test_odometry_bytes_identical_both_ways(frame_id, child):
     odo = ros2cdr.decode_odometry(theirs)
     assert (odo.v, odo.w) == (v, w) and odo.stamp == pytest.approx(t, abs=1e-9)
     assert odo.pose[:2] == (x, y) and odo.pose[2] == pytest.approx(yaw, abs=1e-12)
+
+
+# --- PoseStamped (goals from RViz / Nav2 tools; the fleet's slots: stack.agents.ros_graph) -------------
+@pytest.mark.parametrize("frame_id", FRAMES)
+def test_pose_stamped_bytes_identical_both_ways(frame_id):
+    from stack.drivers import rmw_zenoh
+
+    t, x, y, yaw = rng.uniform(0, 2e9), rng.uniform(-50, 50), rng.uniform(-50, 50), rng.uniform(-math.pi, math.pi)
+    ours = rmw_zenoh.encode_pose_stamped(t, x, y, yaw, frame_id=frame_id)
+    msg = PoseStamped(Header(stamp_of(t), frame_id),
+                      Pose(Point(x, y, 0.0), Quaternion(0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))))
+    theirs = msg.serialize()
+    assert ours == theirs, (len(ours), len(theirs))
+    assert PoseStamped.deserialize(ours) == msg
+    p = rmw_zenoh.decode_pose_stamped(theirs)
+    assert (p.frame_id, p.x, p.y) == (frame_id, x, y) and p.yaw == pytest.approx(yaw, abs=1e-12)
+    assert p.stamp == pytest.approx(t, abs=1e-9)
 
 
 # --- LaserScan --------------------------------------------------------------------------------

@@ -33,6 +33,7 @@ from ..drivers import Driver, DriverLimits, make_driver
 from ..scenario import Scenario, fix_due
 from .frames import StreamClock
 from .lidar import scan_from_driver
+from .ros_graph import RosGraphLink, open_ros_graph
 from .step import OdomSample, StepConfig, StepInputs, StepOutput, StepPipeline
 from .timing import LatencyHistogram
 
@@ -125,6 +126,7 @@ class Agent:
         self.barrier = StepBarrier(self.id, self._cv, neighbour_wait_s=NEIGHBOUR_WAIT_S,
                                    device_wait_s=DEVICE_ODOM_WAIT_S, sensor_timeout_s=cfg.sensor_timeout_s)
         self.driver: Driver = self._make_driver()
+        self.ros_graph: RosGraphLink | None = None  # robot.ros_graph: opened by run() where enabled
 
     @property
     def role(self) -> str:
@@ -272,6 +274,7 @@ class Agent:
         ]
         token = None
         try:
+            self.ros_graph = open_ros_graph(self.robot, s, self._count_malformed)
             with self.driver:
                 token = s.liveliness().declare_token(k.alive(self.id))
                 log.info("agent %d (%s, policy %s, driver %s) up on %s", self.id, self.role, self.pipeline.policy.name,
@@ -285,6 +288,8 @@ class Agent:
                     self.driver.stop()  # zero velocity before anything else on the way out
                     self._publish_diag("stopped")
         finally:
+            if self.ros_graph is not None:
+                self.ros_graph.close()
             if token is not None:
                 token.undeclare()
             for sub in subs:
@@ -429,6 +434,8 @@ class Agent:
         if self.cfg.lockstep and not self.driver.answers_steps:  # the command went over the device's wire
             self._answer_pub.put(encode(Answer(id=self.id, step=k, stamp=self._stamp())))
         self.hist.add((time.perf_counter() - self._in.sensor_perf) * 1000.0)
+        if self.ros_graph is not None:  # hands the step over to its publisher thread; a goal for the next step
+            self.ros_graph.step(inp.t, self._stamp(), self.pipeline)
         if k % 10 == 0:
             self._publish_diag("running")
 

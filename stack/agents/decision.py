@@ -22,7 +22,7 @@ window is stuck and drives to an escape / detour waypoint for a bounded time (si
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -107,6 +107,7 @@ class DecisionLayer:
         self.stuck = StuckDetector(stuck)
         self.hold = HoldGuard(hold)
         self.farthest: tuple[int, float] | None = None  # (id, distance) of the farthest neighbour (the hold's)
+        self.target: tuple[float, float] | None = None  # the last decision's formation target, before any escape
 
     def decide(self, pose, now: float, neighbours: dict[int, Neighbour], scans: np.ndarray, d_omin: float,
                t_run: float | None = None, dead: set[int] | frozenset[int] = frozenset()) -> Decision:
@@ -124,6 +125,7 @@ class DecisionLayer:
                                                     target_yaw=target_yaw, alpha=alpha))
 
         dec = self._situation(pose, now, neighbours, view, obs, d_omin, t_run, dead)
+        self.target = dec.target  # leader, peer: the goal; follower: its slot (eq. 3); None while waiting
         if dec.target is None or (self.role == "leader" and self._held(dec.d_rmax)):
             self.stuck.pause()  # nothing to go to, or held on purpose (bounded by the hold's own clock)
             return self._count(dec)
@@ -134,6 +136,15 @@ class DecisionLayer:
         if wp is not None:
             dec = Decision("escape", True, obs(wp), wp, dec.d_rmin, dec.d_rmax, dec.d_omin)
         return self._count(dec)
+
+    def set_goal(self, goal: tuple[float, float]) -> None:
+        """A new goal in the site frame: the formation's (used while this robot leads) or, for an arrival-time
+        peer, its own; followers' slots stay relative to the leader. The stuck detector's window starts again."""
+        if self.formation is None:
+            self.goal = goal
+        else:
+            self.formation = replace(self.formation, goal=goal)
+        self.stuck.pause()
 
     def _held(self, d_rmax: float) -> bool:
         """Whether the leader's hold slows it on purpose (last step). An agent that never calls :meth:`hold_speed`
