@@ -1,4 +1,4 @@
-"""Pose estimation from the agent's own sensors (never ground truth). Imports numpy, filterpy and stack.models only."""
+"""Pose estimation from the agent's own sensors (never ground truth). Imports numpy and stack.models only."""
 
 from .ekf import EkfConfig, PoseEKF
 from .pose import Pose, wrap

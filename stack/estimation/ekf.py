@@ -1,4 +1,4 @@
-"""Pose EKF on filterpy: state [x, y, yaw, v, w], unicycle model of Bai 2022 eq. (1).
+"""Pose EKF (numpy, filterpy's equations): state [x, y, yaw, v, w], unicycle model of Bai 2022 eq. (1).
 
     x' = v cos(yaw),  y' = v sin(yaw),  yaw' = w,  v' = 0 + noise,  w' = 0 + noise
 
@@ -24,15 +24,15 @@ G's pose rows) integrates each period with the previous period's rates, lags the
 (v, w) dt / 2 and gave 1.46; this order with that Q gave 1.24 (the pose rows let the next
 period's rate measurement correct the yaw of the period before); this order and Q: 1.03.
 
-How filterpy is used. ``filterpy.kalman.ExtendedKalmanFilter.predict`` propagates the
-mean as ``F @ x``, the linearisation, so :class:`_UnicycleEKF` overrides ``predict_x``
-(the hook filterpy documents for exactly this) with the exact unicycle motion over dt
-(v, w constant over the period: the robot drives a circular arc). ``PoseEKF.predict``
-sets F (the Jacobian of that motion, evaluated at the prior) and Q, then calls filterpy's
-``predict``, which runs our ``predict_x`` and P = F P F' + Q. Measurements go through
-filterpy's ``update`` with ``HJacobian``/``Hx`` and an explicit R; filterpy uses the Joseph
-form P = (I-KH) P (I-KH)' + K R K', and we symmetrise P after every step. Fixes are gated
-before filterpy sees them (y = z - H x, S = H P H' + R, reject if y' S^-1 y > gate_chi2).
+How the filter runs. The equations are those of filterpy's ``ExtendedKalmanFilter`` (its
+``predict`` with ``predict_x`` overridden, its ``update``), written out in numpy in :class:`_Ekf`
+so that an agent does not import filterpy, which imports scipy.stats (about 45 MB resident per
+process; tests/test_lean.py checks the two agree on a run). ``predict`` propagates the mean by the
+exact unicycle motion over dt (v, w constant over the period: the robot drives a circular arc),
+not by ``F @ x``, and P = F P F' + Q with F the Jacobian of that motion at the prior. Measurements
+are linear: S = H P H' + R, K = P H' S^-1, x = x + K (z - H x), and the Joseph form
+P = (I-KH) P (I-KH)' + K R K'; we symmetrise P after every step. Fixes are gated first
+(y = z - H x, S = H P H' + R, reject if y' S^-1 y > gate_chi2).
 
 Robustness: any NaN/inf/negative input (value, dt or std) is dropped and counted in
 ``rejected_nan`` before it touches the filter; if a finite but absurd input would still make
@@ -40,7 +40,7 @@ x or P non-finite, the step is rolled back and counted there too. The yaw is wra
 (-pi, pi] after every predict and every update. No measurement has an angle residual (the
 odometry and gyro measure rates, the fix measures position), so no residual needs wrapping.
 
-Imports: numpy, filterpy, the standard library and stack.models (ARCHITECTURE.md, estimation room).
+Imports: numpy, the standard library and stack.models (ARCHITECTURE.md, estimation room).
 """
 
 from __future__ import annotations
@@ -49,7 +49,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from filterpy.kalman import ExtendedKalmanFilter
 
 from ..models.kinematics import arc_step, sinc
 from .pose import Pose, wrap
@@ -133,13 +132,27 @@ def _finite(*vals: float) -> bool:
     return all(math.isfinite(v) for v in vals)
 
 
-class _UnicycleEKF(ExtendedKalmanFilter):
-    """filterpy's EKF with the mean propagated by the exact unicycle model, not F @ x."""
+class _Ekf:
+    """The mean and covariance, stepped by filterpy's ``ExtendedKalmanFilter`` equations (same order of
+    products) with the mean propagated by the exact unicycle model, not F @ x."""
 
-    dt: float = 0.0
+    def __init__(self, x: np.ndarray, P: np.ndarray):
+        self.x, self.P = x, P
+        self.F, self.Q = np.eye(5), np.zeros((5, 5))
+        self._I = np.eye(5)
 
-    def predict_x(self, u=0):
-        self.x = motion(self.x, self.dt)
+    def predict(self, dt: float) -> None:
+        """x = f(x, dt); P = F P F' + Q."""
+        self.x = motion(self.x, dt)
+        self.P = (self.F @ self.P) @ self.F.T + self.Q
+
+    def update(self, z: np.ndarray, H: np.ndarray, R: np.ndarray) -> None:
+        """K = P H' S^-1, x = x + K (z - H x), P = (I-KH) P (I-KH)' + K R K'."""
+        PHT = self.P @ H.T
+        K = PHT @ np.linalg.inv(H @ PHT + R)
+        self.x = self.x + K @ (z - H @ self.x)
+        I_KH = self._I - K @ H
+        self.P = (I_KH @ self.P) @ I_KH.T + (K @ R) @ K.T
 
 
 class PoseEKF:
@@ -152,10 +165,9 @@ class PoseEKF:
         if not _finite(x, y, yaw):
             raise ValueError(f"initial pose must be finite, got {(x, y, yaw)}")
         self.cfg = cfg
-        self._kf = _UnicycleEKF(dim_x=5, dim_z=2)
-        self._kf.x = np.array([[x], [y], [wrap(yaw)], [0.0], [0.0]])
-        self._kf.P = np.diag([cfg.init_pos_std ** 2, cfg.init_pos_std ** 2, cfg.init_yaw_std ** 2,
-                              cfg.init_v_std ** 2, cfg.init_w_std ** 2])
+        self._kf = _Ekf(np.array([[x], [y], [wrap(yaw)], [0.0], [0.0]]),
+                        np.diag([cfg.init_pos_std ** 2, cfg.init_pos_std ** 2, cfg.init_yaw_std ** 2,
+                                 cfg.init_v_std ** 2, cfg.init_w_std ** 2]))
         self.rejected_fixes = 0
         self.rejected_nan = 0
 
@@ -176,9 +188,8 @@ class PoseEKF:
         Q[IV, IV] = (cfg.accel_std * dt) ** 2
         Q[IW, IW] = (cfg.alpha_std * dt) ** 2
         kf.Q = Q
-        kf.dt = dt
         x0, P0 = kf.x.copy(), kf.P.copy()
-        kf.predict()                                    # x = f(x, dt) (our predict_x); P = F P F' + Q
+        kf.predict(dt)                                  # x = f(x, dt); P = F P F' + Q
         self._settle(x0, P0)
 
     # ---------------------------------------------------------------- updates
@@ -256,7 +267,7 @@ class PoseEKF:
         """K = P H' S^-1, x = x + K y, P = (I-KH) P (I-KH)' + K R K' (filterpy's update)."""
         kf = self._kf
         x0, P0 = kf.x.copy(), kf.P.copy()
-        kf.update(z, HJacobian=lambda _x: H, Hx=lambda x: H @ x, R=R)
+        kf.update(z, H, R)
         return self._settle(x0, P0)
 
     def _settle(self, x0: np.ndarray, P0: np.ndarray) -> bool:
