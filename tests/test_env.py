@@ -112,7 +112,7 @@ def test_train_save_load_and_act_through_the_agents_factory(tmp_path):
     s = train_on_env(env, EnvLearnConfig(steps=60, learn_start=32, batch=16, seed=3), out, log=lambda *_: None)
     assert out.exists() and s["updates"] > 0 and s["steps"] == 60
     d = scenario_dict()
-    d["robot"]["drl"] = {"weights": str(out), "shield": False}
+    d["robot"]["drl"] = {"weights": str(out), "shield": False, "runtime": "torch"}  # the torch module itself
     robot = parse_scenario(d, "env.yaml").robots[1]
     policy = make_policy("drl", robot)
     state = torch.load(out, weights_only=True)

@@ -88,7 +88,7 @@ def test_stack_agent_help_runs_without_the_extras():
 
 
 def test_a_robot_with_any_driver_and_a_numpy_policy_imports_no_extra():
-    """The agent, every hardware driver, and every policy that needs no torch build without the extras."""
+    """The agent, every hardware driver, and every policy (drl on its default numpy runtime) build without the extras."""
     p = _run_without_extras("""
         import sys
         from stack.scenario import load_scenario
@@ -96,7 +96,7 @@ def test_a_robot_with_any_driver_and_a_numpy_policy_imports_no_extra():
         import stack.agents.agent, stack.drivers.can, stack.drivers.mavlink, stack.drivers.jackal, stack.drivers.sim
         sc = load_scenario("scenarios/four-robot-obstacles.yaml")
         robot = sc.robot(1)
-        for name in ("pid", "aina", "qlearn", "fuzzy"):
+        for name in ("pid", "aina", "qlearn", "fuzzy", "drl"):
             make_policy(name, robot, seed=0)
         loaded = sorted(m for m in sys.modules if m.split(".")[0] in sys.argv[1].split(","))
         assert not loaded, loaded
@@ -106,16 +106,22 @@ def test_a_robot_with_any_driver_and_a_numpy_policy_imports_no_extra():
     assert p.stdout.strip() == "ok"
 
 
-def test_a_drl_robot_without_torch_is_told_which_extra_in_one_line(tmp_path):
-    """``--policy drl`` where torch is not installed: one line naming the extra, exit 2, no traceback."""
-    p = _run_without_extras("""
+def test_a_drl_robot_on_torch_without_torch_is_told_which_extra_in_one_line(tmp_path):
+    """``robot.drl.runtime: torch`` where torch is not installed: one line naming the extra, exit 2, no traceback."""
+    import yaml
+
+    sc = yaml.safe_load((ROOT / "scenarios" / "four-robot-obstacles.yaml").read_text())
+    sc.setdefault("robot", {})["drl"] = {"runtime": "torch"}
+    path = tmp_path / "torch.yaml"
+    path.write_text(yaml.safe_dump(sc))
+    p = _run_without_extras(f"""
         import sys
         from stack.agents.cli import cli
-        sys.argv = ["stack-agent", "--id", "1", "--role", "follower", "--scenario", "scenarios/four-robot-obstacles.yaml",
+        sys.argv = ["stack-agent", "--id", "1", "--role", "follower", "--scenario", {str(path)!r},
                     "--policy", "drl", "--connect", "tcp/127.0.0.1:9"]
         sys.exit(cli())
     """)
     assert p.returncode == 2, (p.stdout, p.stderr)
     lines = p.stderr.strip().splitlines()
-    assert lines == ["stack-agent: policy 'drl' needs the Python package 'torch', not installed here "
-                     "(install the 'drl' extra: pip install 'formation-stack[drl]')"], p.stderr
+    assert len(lines) == 1 and lines[0].startswith("stack-agent: ") and "runtime: torch needs the Python package 'torch'" in lines[0] \
+        and "pip install 'formation-stack[drl]'" in lines[0], p.stderr

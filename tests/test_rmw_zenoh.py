@@ -505,6 +505,16 @@ def test_robot_router_config_exposes_only_the_agents_topics(tmp_path):
             assert wait_for(lambda: robot.publish_odom(1.0) or odoms, 5.0), "odometry did not reach the agent"
             assert wait_for(lambda: cmd.put(encode_twist(0.1, 0.0)) and robot.accepted, 5.0)
             assert wait_for(lambda: "/robot2/stack_agent" in graph.nodes(), 5.0), graph.nodes()
+            # robot.ros_graph's topics (docs/ros2.md): a goal in, the agent's estimate out
+            goals, estimates = [], []
+            node.subscribe("goal_pose", rz.POSE_STAMPED, lambda p, a: goals.append(a))
+            s_robot.declare_subscriber(rz.topic_key(0, "/robot2/formation/odometry", ODOMETRY),
+                                       lambda s: estimates.append(s))
+            est = node.publisher("formation/odometry", ODOMETRY)
+            goal_key = rz.topic_key(0, "/robot2/goal_pose", rz.POSE_STAMPED)
+            assert wait_for(lambda: s_robot.put(goal_key, rz.encode_pose_stamped(0.0, 1.0, 2.0, 0.0),
+                                                attachment=rz.Attachment(1, 1, robot.gid).encode()) or goals, 5.0)
+            assert wait_for(lambda: est.put(encode_odometry(0.0, 1.0, 2.0, 0.0, 0.0, 0.0)) or estimates, 5.0)
             # what the agent may not touch: other ROS topics, either way; and a stranger gets nothing
             unsafe = []
             sub = s_robot.declare_subscriber(other.key, lambda s: unsafe.append(s))

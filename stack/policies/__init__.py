@@ -46,9 +46,14 @@ def factory(name: str):
     try:
         return rec.make()
     except ModuleNotFoundError as e:  # a policy from an extra this install does not have
-        extra = EXTRA_OF.get((e.name or "").split(".")[0])
-        hint = f" (install the '{extra}' extra: pip install 'formation-stack[{extra}]')" if extra else ""
-        raise PolicyUnavailable(f"policy {name!r} needs the Python package {e.name!r}, not installed here{hint}") from None
+        raise unavailable(name, e) from None
+
+
+def unavailable(name: str, e: ModuleNotFoundError) -> PolicyUnavailable:
+    """Policy ``name`` cannot run here because ``e.name`` is missing: the one line saying which extra has it."""
+    extra = EXTRA_OF.get((e.name or "").split(".")[0])
+    hint = f" (install the '{extra}' extra: pip install 'formation-stack[{extra}]')" if extra else ""
+    return PolicyUnavailable(f"policy {name!r} needs the Python package {e.name!r}, not installed here{hint}")
 
 
 EXTRA_OF = {"torch": "drl", "pybullet": "sim", "matplotlib": "sim"}

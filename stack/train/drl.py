@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from ..argtypes import nonnegative_float, nonnegative_int, positive_int
-from . import InputError
+from . import PROG, InputError
 from .flags import add_job_arguments, flag, job_from_args
 
 HELD_OUT_SEED = 20261
@@ -53,6 +53,8 @@ class DrlJob:
     """start from these weights (stage 2: the stage-1 drl.pt)"""
     evaluate: Path | None = flag(None, metavar="WEIGHTS")
     """only evaluate these weights on the held-out scenes (no training)"""
+    export: Path | None = flag(None, metavar="OUT.npz")
+    """only write the weights of --init (default: the shipped drl.pt) as the numpy .npz a robot's numpy runtime loads"""
     episodes: int | None = flag(None, type=positive_int)
     """max-episodes (section V-A; None: 5000 in stage 1, 10000 in stage 2)"""
     envs: int = flag(16, type=positive_int)
@@ -508,6 +510,12 @@ def main(args: argparse.Namespace) -> int:
     for path in (job.evaluate, job.init):
         if path is not None and not path.exists():
             raise InputError(f"{path}: no such weights file")
+    if job.export:
+        from stack.policies.drl.numpy_net import export_npz
+        from stack.policies.drl.policy import WEIGHTS, load_network
+
+        print(f"{PROG} drl: wrote {export_npz(load_network(job.init or WEIGHTS).state_dict(), job.export)}")
+        return 0
     if job.evaluate:
         torch.set_num_threads(job.threads)
         net = DuelingQNet()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 from ...settings import check
 
@@ -17,7 +18,11 @@ class DrlConfig:
     RULE = (">= 0",)
 
     weights: str | None = None
-    """A state_dict file of :class:`DuelingQNet` (default: the shipped ``weights/drl.pt``)."""
+    """The network's weights: a ``.npz`` export (``stack-train drl --export``) or a torch state_dict file of
+    :class:`DuelingQNet` (default: the shipped ``weights/drl.npz``, the export of ``weights/drl.pt``)."""
+    runtime: Literal["numpy", "torch"] = "numpy"
+    """Where the network runs: ``numpy`` (no torch on the robot; the same Q values, tests/test_lean.py) or
+    ``torch`` (the ``drl`` extra). Torch-file weights need torch either way."""
     shield: bool = True
     """Mask the actions whose arc would bring the robot within ``shield_margin`` of a lidar return in
     ``shield_horizon`` (ours, a safety layer under the network; the network alone: False)."""
@@ -37,3 +42,19 @@ class DrlConfig:
             raise ValueError(f"leader_hold: expected {_HOLD}, got {list(h)!r}")
         if self.weights is not None and not Path(self.weights).is_file():
             raise ValueError(f"weights: no such file: {self.weights}")
+        torch_file = self.weights is not None and Path(self.weights).suffix != ".npz"
+        if (self.runtime == "torch" or torch_file) and not _have_torch():
+            what = "runtime: torch" if self.runtime == "torch" else f"weights: {self.weights} (a torch file)"
+            raise ValueError(f"{what} needs the Python package 'torch', not installed here "
+                             "(install the 'drl' extra: pip install 'formation-stack[drl]'; or runtime: numpy "
+                             "on weights exported by stack-train drl --export)")
+
+
+def _have_torch() -> bool:
+    """Whether torch can be imported here (found, not imported)."""
+    import importlib.util
+
+    try:
+        return importlib.util.find_spec("torch") is not None
+    except (ImportError, ValueError):  # a finder that refuses it (tests/test_install.py) reads as missing
+        return False

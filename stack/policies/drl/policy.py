@@ -2,8 +2,10 @@
 
 The decision layer (:mod:`stack.agents.decision`, section IV) calls it in the leader's
 situation 2 and the followers' situations 2-3; PID drives in situation 1 (``hybrid = True``).
-Weights are a state_dict loaded once; ``torch.set_num_threads(1)`` keeps one agent process on
-one core.
+The network runs in numpy on the exported weights (``robot.drl.runtime: numpy``, the default:
+:mod:`.numpy_net`, no torch imported) or in torch (``runtime: torch``, the ``drl`` extra;
+``torch.set_num_threads(1)`` keeps one agent process on one core). Both take either weights file
+(a ``.npz`` export or a torch state_dict); the weights are loaded once.
 """
 
 from __future__ import annotations
@@ -12,29 +14,55 @@ import math
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from ..base import Observation, Policy
 from .config import DrlConfig
-from .network import DuelingQNet
+from .numpy_net import NumpyQNet, load_npz
 from .observation import ACTIONS, goal_features, neighbour_features, scan_features
 
 WEIGHTS = Path(__file__).with_name("weights") / "drl.pt"
+"""The shipped weights, a torch state_dict (what training writes)."""
+WEIGHTS_NPZ = WEIGHTS.with_suffix(".npz")
+"""The same weights exported for numpy (``stack-train drl --export``; tests/test_lean.py checks they match)."""
 
 
-def load_network(path: str | Path | None = None) -> DuelingQNet:
-    """The network with the weights at ``path`` (default: the shipped ones), in eval mode."""
+def _state_dict(path: Path) -> dict:
+    """The torch state_dict in ``path``: a torch file, or a ``.npz`` export."""
+    import torch
+
+    if path.suffix == ".npz":
+        return {k: torch.from_numpy(v) for k, v in load_npz(path).items()}
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
+def load_network(path: str | Path | None = None):
+    """The torch ``DuelingQNet`` with the weights at ``path`` (default: the shipped ones), in eval mode."""
+    from .network import DuelingQNet
+
     net = DuelingQNet()
-    net.load_state_dict(torch.load(Path(path) if path else WEIGHTS, map_location="cpu", weights_only=True))
+    net.load_state_dict(_state_dict(Path(path) if path else WEIGHTS))
     return net.eval()
 
 
-def encode(obs: Observation) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """One observation -> the network's inputs (batch of one): scans, [o_g, o_v], o_r."""
-    z = torch.from_numpy(scan_features(obs.scans))[None]
-    g = torch.from_numpy(goal_features(obs.d_g, obs.alpha_g, obs.v, obs.w))[None]
-    nb = torch.from_numpy(neighbour_features(obs.neighbours))[None]
-    return z, g, nb
+def load_numpy_network(path: str | Path | None = None) -> NumpyQNet:
+    """The numpy network with the weights at ``path`` (default: the shipped ``.npz``; a torch file needs torch)."""
+    path = Path(path) if path else WEIGHTS_NPZ
+    if path.suffix == ".npz":
+        return NumpyQNet(load_npz(path))
+    return NumpyQNet({k: v.numpy() for k, v in _state_dict(path).items()})
+
+
+def features(obs: Observation) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One observation -> the network's inputs (batch of one, numpy float32): scans, [o_g, o_v], o_r."""
+    return (scan_features(obs.scans)[None], goal_features(obs.d_g, obs.alpha_g, obs.v, obs.w)[None],
+            neighbour_features(obs.neighbours)[None])
+
+
+def encode(obs: Observation):
+    """:func:`features` as torch tensors."""
+    import torch
+
+    return tuple(torch.from_numpy(a) for a in features(obs))
 
 
 class Shield:
@@ -84,12 +112,19 @@ class DrlPolicy(Policy):
     name = "drl"
     hybrid = True
 
-    def __init__(self, weights: str | Path | None = None, *, net: DuelingQNet | None = None, threads: int = 1,
+    def __init__(self, weights: str | Path | None = None, *, net=None, threads: int = 1,
                  cfg: DrlConfig | None = None, radius: float = 0.5, fov: float = math.pi):
-        if threads:
-            torch.set_num_threads(threads)
         self.cfg = cfg = cfg or DrlConfig(shield=False)
-        self.net = net.eval() if net is not None else load_network(weights or cfg.weights)
+        # a torch module given, or runtime torch: torch; else numpy (a NumpyQNet, or any callable on numpy inputs)
+        self.torch = hasattr(net, "eval") if net is not None else cfg.runtime == "torch"
+        if self.torch:
+            import torch
+
+            if threads:
+                torch.set_num_threads(threads)
+            self.net = net.eval() if net is not None else load_network(weights or cfg.weights)
+        else:
+            self.net = net if net is not None else load_numpy_network(weights or cfg.weights)
         self.last_q: np.ndarray | None = None
         self.shield = (Shield(ACTIONS, radius=radius, fov=fov, horizon=cfg.shield_horizon, margin=cfg.shield_margin)
                        if cfg.shield else None)
@@ -97,6 +132,10 @@ class DrlPolicy(Policy):
         self.leader_hold = cfg.leader_hold
 
     def q_values(self, obs: Observation) -> np.ndarray:
+        if not self.torch:
+            return self.net(*features(obs))[0]
+        import torch
+
         with torch.inference_mode():
             return self.net(*encode(obs))[0].numpy()
 
@@ -116,6 +155,10 @@ def make_drl(robot=None, *, seed: int = 0, weights: str | Path | None = None, **
     """Factory for the registry: ``robot.drl`` (:class:`DrlConfig`; the shield on by default), the shipped
     weights unless ``weights`` or ``robot.drl.weights`` names others (greedy: ``seed`` unused)."""
     cfg = robot.config_for("drl") if robot is not None else DrlConfig()
-    if robot is None:
-        return DrlPolicy(weights, cfg=cfg)
-    return DrlPolicy(weights, cfg=cfg, radius=robot.radius, fov=robot.lidar.fov)
+    geometry = {} if robot is None else {"radius": robot.radius, "fov": robot.lidar.fov}
+    try:
+        return DrlPolicy(weights, cfg=cfg, **geometry)
+    except ModuleNotFoundError as e:  # runtime torch (or torch weights) where torch is not installed
+        from .. import unavailable
+
+        raise unavailable("drl", e) from None
