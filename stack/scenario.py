@@ -720,6 +720,31 @@ def _robot(rd: _Reader, r: Any, p: str, defaults: dict[str, Any]) -> RobotConfig
     return robot.with_defaults("pid", robot.policy_key)
 
 
+class _FileReader(_Reader):
+    """Paths from a file's root (a robot's own file: ``can.channel``, not ``robots[2].can.channel``)."""
+
+    def fail(self, path: str, what: str) -> ScenarioError:
+        return super().fail(path.lstrip(".") or "(top level)", what)
+
+
+def check_robot_entry(data: Any, source: str) -> None:
+    """A robot's own settings file (``stack.robotfile``): the keys of one ``robots[i]`` entry, none of them
+    required, each checked as the scenario checks it; errors name ``source`` and the key's path in it."""
+    rd = _FileReader(source)
+    d = rd.mapping(data, "", _robot_keys() | {"id", "role", "pose", "goal"})
+    if "id" in d:
+        _max(rd, rd.integer(d["id"], "id", 0), 65535, "id")
+    if "pose" in d:
+        rd.vector(d["pose"], "pose", 3)
+    if "role" in d:
+        rd.choice(d["role"], "role", ROLES)
+    if "goal" in d:
+        rd.vector(d["goal"], "goal", 2)
+    fields_ = _robot_fields(rd, d, "", {})
+    if "driver" in d:  # its device block, where the same file says which driver it is for
+        _resolve_device(rd, fields_.get("device_blocks", {}), fields_["driver"], "")
+
+
 def _formation(rd: _Reader, value: Any, seen: set[int], duration: float) -> FormationConfig:
     f = rd.mapping(value, "formation", {"leader", "goal", "slots", "d_safe", "schedule"})
     for k in ("leader", "goal"):

@@ -12,8 +12,10 @@ from ..comm.session import ConfigFileError, EndpointError, SessionConfig, Sessio
 from ..drivers import DriverError, UnknownDriver
 from ..policies import PolicyUnavailable
 from ..policies import factory as policy_factory
-from ..scenario import ScenarioError, driver_names, load_scenario, policy_names, with_driver_settings, with_overrides
+from ..robotfile import describe, load_mission
+from ..scenario import ScenarioError, driver_names, policy_names, with_driver_settings, with_overrides
 from .agent import Agent, AgentConfig
+from .check import CHECK_DURATION_S, run_check
 
 log = logging.getLogger("stack.agent")
 
@@ -39,12 +41,16 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--allow-remote", action="store_true", help="allow a router endpoint off loopback")
     ap.add_argument("--can-log", metavar="FILE", help="can driver: log every frame to FILE (.asc, .blf, .log, .csv; can.Logger)")
     ap.add_argument("--zenoh-config", metavar="FILE", help="zenoh json5 config layered under ours (deploy/: TLS, access control)")
+    ap.add_argument("--robot", metavar="FILE", help="this robot's own settings, layered over its entry in --scenario")
+    ap.add_argument("--check", action="store_true", help="open the robot's devices, report what is there, command nothing")
+    ap.add_argument("--check-duration", type=float, default=CHECK_DURATION_S, metavar="S",
+                    help="--check: how long to listen (default %(default)s s)")
     ap.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     return ap
 
 
 def config_from_args(a: argparse.Namespace) -> AgentConfig:
-    sc = load_scenario(a.scenario)
+    sc = load_mission(a.scenario, a.id, a.robot)
     robot = sc.robot(a.id)
     role = robot.role or "peer"
     if a.role is not None and a.role != role:
@@ -52,6 +58,7 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
     if a.steps is not None and a.steps < 1:
         raise ScenarioError(f"--steps: must be >= 1, got {a.steps}")
     check_endpoint(a.connect, a.allow_remote)
+    _check_flags(a)
     if a.policy or a.driver:
         sc = with_overrides(sc, policy=a.policy, driver=a.driver)
     if a.can_log:
@@ -59,8 +66,17 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
         if driver != "can":
             raise ScenarioError(f"--can-log: robot {a.id}'s driver is {driver}, not can")
         sc = with_driver_settings(sc, {a.id: {"can_log": a.can_log}})
+    log.info("agent %d resolved (%s%s): %s", a.id, a.scenario, f" + {a.robot}" if a.robot else "",
+             describe(sc.robot(a.id)))
     return AgentConfig(robot_id=a.id, scenario=sc, connect=a.connect, fleet=a.fleet, lockstep=a.lockstep,
                        steps=a.steps, seed=a.seed, zenoh_config=a.zenoh_config, allow_remote=a.allow_remote)
+
+
+def _check_flags(a: argparse.Namespace) -> None:
+    if a.check and a.lockstep:
+        raise ScenarioError("--check: listens in real time, not with --lockstep")
+    if not 0.0 < a.check_duration <= 600.0:
+        raise ScenarioError(f"--check-duration: must be in (0, 600] s, got {a.check_duration:g}")
 
 
 def main(cfg: AgentConfig) -> int:
@@ -95,7 +111,7 @@ def cli(argv: list[str] | None = None) -> int:
         return 2
     try:
         policy_factory(cfg.policy or cfg.scenario.robot(cfg.robot_id).policy)  # a missing extra: said before connecting
-        return main(cfg)
+        return run_check(cfg, a.check_duration) if a.check else main(cfg)
     except (PolicyUnavailable, UnknownDriver, ConfigFileError) as e:
         print(f"stack-agent: {e}", file=sys.stderr)
         return 2
