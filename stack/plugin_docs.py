@@ -38,7 +38,8 @@ def _cell(text: str) -> str:
 
 def plugin_table(kind: str, rec: Plugin) -> str:
     """One plugin's heading, its record and its settings table."""
-    block = {"policies": f"`robot.{rec.settings_key}` ", "drivers": f"`robot.{rec.name}` "}.get(kind, "")
+    block = {"policies": f"`robot.{rec.settings_key}` ", "drivers": f"`robot.{rec.name}` ",
+             "lidars": f"`robot.lidar.{rec.name}` "}.get(kind, "")
     lines = [f"### `{rec.name}`", ""]
     if rec.summary:
         lines += [rec.summary + ".", ""]
@@ -48,14 +49,32 @@ def plugin_table(kind: str, rec: Plugin) -> str:
     if cls is not None and kind == "policies" and rec.key and rec.key != rec.name:
         lines += ["", f"The same settings as the policy that owns `robot.{rec.key}`."]
     elif cls is not None:
-        lines += ["", "| key | default | accepts | meaning |", "| --- | --- | --- | --- |"]
-        for key, default, accepted, doc in settings.rows(cls):
-            lines.append(f"| `{key}` | {_cell(_value(default))} | {_cell(accepted)} | {_cell(doc)} |")
+        lines += _table(cls)
+    if kind == "lidars" and rec.device:
+        lines += ["", "Its simulated device's settings (`robot.lidar.device`, simulation only):"]
+        lines += _table(rec.device_class().config_class)
     return "\n".join(lines) + "\n"
+
+
+def _table(cls) -> list[str]:
+    lines = ["", "| key | default | accepts | meaning |", "| --- | --- | --- | --- |"]
+    for key, default, accepted, doc in settings.rows(cls):
+        lines.append(f"| `{key}` | {_cell(_value(default))} | {_cell(accepted)} | {_cell(doc)} |")
+    return lines
+
+
+LIDARS_INTRO = ("`robot.lidar.source` (also per robot) picks the robot's lidar source; its settings are "
+                "`robot.lidar.<source>`. `robot.lidar.mount: [x, y, yaw_deg]` is the sensor's pose on the robot "
+                "(x forward, y left from the robot's centre; default `[0, 0, 0]`): each sample is moved to the "
+                "robot's centre and the scan resampled to the `beams` over `fov_deg` the policy was built for "
+                "(nearest valid sample in bearing within 1.5 sample spacings, else `range`). In simulation the "
+                "world hosts the source's simulated device, at its own rate and beam layout.\n")
 
 
 def kind_section(kind: str, reg: Registry) -> str:
     parts = [f"## {kind.capitalize()}\n", f"Registered: {', '.join(f'`{n}`' for n in reg)}.\n"]
+    if kind == "lidars":
+        parts.append(LIDARS_INTRO)
     parts += [plugin_table(kind, reg[name]) for name in reg]
     return "\n".join(parts)
 

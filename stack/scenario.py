@@ -89,6 +89,19 @@ class LidarConfig:
     fov: float = math.pi  # rad (YAML: fov_deg)
     range: float = 5.0
     noise_std: float = 0.0
+    source: str = "world"
+    """Where the scans come from (``stack.drivers.LIDARS``): ``world``, ``ros2``, ``rplidar``."""
+    mount: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """The sensor's pose on the robot: x forward, y left [m], yaw [rad] (YAML: ``mount: [x, y, yaw_deg]``)."""
+    blocks: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """Each sensor source's settings (``robot.lidar.<source>``), as a dict of its config's fields."""
+    device: dict[str, Any] = field(default_factory=dict)
+    """Simulation only: the settings of the simulated lidar behind the source (``robot.lidar.device``)."""
+
+    @property
+    def params(self) -> dict[str, Any]:
+        """The chosen source's settings."""
+        return dict(self.blocks.get(self.source, {}))
 
 
 @dataclass(frozen=True)
@@ -506,13 +519,64 @@ def _fix(rd: _Reader, value: Any, path: str) -> tuple[float, float]:
 
 
 def _lidar(rd: _Reader, value: Any, path: str, prev: LidarConfig) -> LidarConfig:
-    m = rd.mapping(value, path, {"beams", "fov_deg", "range", "noise_std"})
-    return LidarConfig(
+    from .drivers import LIDARS
+
+    sources = {n for n, rec in LIDARS.items() if rec.config}
+    m = rd.mapping(value, path, {"beams", "fov_deg", "range", "noise_std", "source", "mount", "device"} | sources)
+    mount = prev.mount
+    if "mount" in m:
+        mx, my, myaw = rd.vector(m["mount"], f"{path}.mount", 3)
+        mount = (mx, my, math.radians(myaw))
+    out = LidarConfig(
         beams=_max(rd, rd.integer(m.get("beams", prev.beams), f"{path}.beams", 1), 10_000, f"{path}.beams"),
         fov=math.radians(rd.number(m.get("fov_deg", math.degrees(prev.fov)), f"{path}.fov_deg", 0.0, 360.0, lo_open=True)),
         range=rd.number(m.get("range", prev.range), f"{path}.range", 0.0, 100.0, lo_open=True),
         noise_std=rd.number(m.get("noise_std", prev.noise_std), f"{path}.noise_std", 0.0),
+        source=rd.choice(m.get("source", prev.source), f"{path}.source", LIDARS.names()), mount=mount,
+        blocks=_lidar_blocks(rd, m, path, prev.blocks, sources),
+        device=dict(prev.device) | dict(rd.mapping(m.get("device") or {}, f"{path}.device", _lidar_device_keys(m, prev))),
     )
+    _check_lidar_device(rd, out, path)
+    return out
+
+
+def _lidar_blocks(rd: _Reader, m: dict, path: str, base: Mapping[str, dict], sources: set[str]) -> dict[str, dict]:
+    """``robot.lidar.<source>`` of every sensor source: its config's fields, each block over the defaults'."""
+    from .drivers import LIDARS
+
+    out = dict(base)
+    for name in sorted(sources & set(m)):
+        p, cls = f"{path}.{name}", LIDARS[name].config_class()
+        merged = dict(out.get(name, {})) | dict(rd.mapping(m[name] or {}, p, settings.keys(cls)))
+        try:
+            cfg = settings.read(cls, merged, p)
+        except settings.SettingError as e:
+            raise rd.fail(e.path, e.what) from None
+        out[name] = {k: getattr(cfg, k) for k in merged}
+    return out
+
+
+def _lidar_device_keys(m: dict, prev: LidarConfig) -> set[str]:
+    """The simulated lidar's settings for the source ``m`` (or ``prev``) names; none for ``world``."""
+    import dataclasses
+
+    source = m.get("source", prev.source)
+    if source == "world" or "device" not in m:
+        return set()
+    from .sim_bridge.lidar_devices import lidar_device_class
+
+    return {f.name for f in dataclasses.fields(lidar_device_class(source).config_class)}
+
+
+def _check_lidar_device(rd: _Reader, lid: LidarConfig, path: str) -> None:
+    if lid.source == "world" or not lid.device:
+        return
+    from .sim_bridge.lidar_devices import lidar_device_class
+
+    try:
+        lidar_device_class(lid.source).config_class.from_settings(lid.device)
+    except ValueError as e:
+        raise rd.fail(f"{path}.device", str(e)) from None
 
 
 def _base(rd: _Reader, value: Any, path: str, prev: BaseConfig) -> BaseConfig:
@@ -894,6 +958,19 @@ def with_driver_settings(sc: Scenario, settings: dict[int, dict[str, Any]]) -> S
         if extra:
             robot = sc.robot(r["id"])
             r[robot.driver] = dict(robot.driver_params.get(robot.driver, {})) | extra
+    return parse_scenario(raw, sc.source)
+
+
+def with_lidar_settings(sc: Scenario, extra: dict[int, dict[str, Any]]) -> Scenario:
+    """The scenario with more settings for some robots' lidar sources (``{id: {key: value}}``, under each
+    robot's own ``lidar.<source>``): how the fleet tells agents where their simulated lidar is."""
+    raw = _deepcopy(sc.raw)
+    for r in raw["robots"]:
+        more = extra.get(r["id"])
+        if more:
+            source = sc.robot(r["id"]).lidar.source
+            block = r["lidar"] = dict(r.get("lidar") or {})
+            block[source] = dict(block.get(source) or {}) | more
     return parse_scenario(raw, sc.source)
 
 

@@ -18,6 +18,7 @@ Every way out (SIGINT/SIGTERM, ``--steps``, an error) commands zero velocity fir
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -30,9 +31,10 @@ from ..comm import Keys, MessageError, decode, encode, receive
 from ..comm.lockstep import StepBarrier
 from ..comm.messages import Answer, Clock, Diag, Fix, Scan, State, WorldStatus
 from ..drivers import Driver, DriverLimits, make_driver
+from ..drivers.lidar import Lidar, make_lidar
 from ..scenario import Scenario, fix_due
 from .frames import StreamClock
-from .lidar import scan_from_driver
+from .lidar import scan_from_driver, scan_from_lidar
 from .ros_graph import RosGraphLink, open_ros_graph
 from .step import OdomSample, StepConfig, StepInputs, StepOutput, StepPipeline
 from .timing import LatencyHistogram
@@ -92,6 +94,7 @@ class _Inbox:
     scan: Scan | None = None
     scan_t: float | None = None  # agent clock
     driver_scan: tuple | None = None  # (the driver's newest scan, it as our Scan)
+    lidar_n: int = 0  # scans the robot's own lidar source delivered
     dead: set = field(default_factory=set)  # real time: robots whose liveliness token is gone
     world_clock: tuple[float, float] | None = None  # real time: (the world's t, our clock when it came)
     sensor_perf: float = 0.0  # perf_counter of the newest sensor message (loop latency)
@@ -127,6 +130,11 @@ class Agent:
                                    device_wait_s=DEVICE_ODOM_WAIT_S, sensor_timeout_s=cfg.sensor_timeout_s)
         self.driver: Driver = self._make_driver()
         self.ros_graph: RosGraphLink | None = None  # robot.ros_graph: opened by run() where enabled
+        self.lidar: Lidar | None = self._make_lidar()
+        self._lidar_sync: tuple[int, int] | None = None  # lock-step: (device scans, scans we had) at our first step
+        self._lidar_wait: tuple[int, float] | None = None  # lock-step: (step, wall deadline) of a wait for scans
+        self._lidar_taken = (0, None)  # lock-step: (lidar_n, sim time) when a new scan was last taken
+        self.lidar_late = 0  # lock-step steps that went on without all of the lidar's scans
 
     @property
     def role(self) -> str:
@@ -143,6 +151,15 @@ class Agent:
         params = self.robot.driver_params.get(name, {})
         return make_driver(name, self.id, limits, session=self.session, keys=self.keys, stamp=self._stamp,
                            on_malformed=self._count_malformed, on_odom=self._on_odom, clock=clock, **params)
+
+    def _make_lidar(self) -> Lidar | None:
+        """The robot's own lidar source (``robot.lidar.source``); None: the world's scans (``_on_scan``)."""
+        source = self.robot.lidar.source
+        if source == "world":
+            return None
+        clock = (lambda: self.sim_now) if self.cfg.lockstep else time.monotonic
+        return make_lidar(source, self.id, session=self.session, keys=self.keys, clock=clock, on_scan=self._on_lidar,
+                          on_malformed=self._count_malformed, **self.robot.lidar.params)
 
     # --- time ----------------------------------------------------------------------
     def _stamp(self) -> float:
@@ -196,6 +213,17 @@ class Agent:
             return
         with self._cv:
             self._in.scan, self._in.scan_t = m, self._now()
+            self._in.sensor_perf = time.perf_counter()
+            self._cv.notify_all()
+
+    def _on_lidar(self, data) -> None:
+        """Each scan of the robot's own lidar (its source's thread), as this robot's configured ``Scan``."""
+        with self._cv:
+            n = self._in.lidar_n
+        scan = scan_from_lidar(self.robot, data, n, self._stamp())
+        with self._cv:
+            self._in.scan, self._in.scan_t, self._in.lidar_n = scan, self._now(), n + 1
+            self.scans_from_driver += 1
             self._in.sensor_perf = time.perf_counter()
             self._cv.notify_all()
 
@@ -265,17 +293,18 @@ class Agent:
         self._diag_pub = s.declare_publisher(k.robot(self.id, "diag"), congestion_control=block)
         self._answer_pub = s.declare_publisher(k.robot(self.id, "answer"), congestion_control=block)
         subs = [
-            s.declare_subscriber(k.robot(self.id, "scan"), self._on_scan),
             s.declare_subscriber(k.robot(self.id, "fix"), self._on_fix),
             s.declare_subscriber(k.all_robots("state"), self._on_state),
             s.declare_subscriber(k.world("clock"), self._on_clock),
             s.declare_subscriber(k.world("status"), self._on_world_status),
             s.liveliness().declare_subscriber(k.all_alive, self._on_alive, history=True),
         ]
+        if self.lidar is None:
+            subs.append(s.declare_subscriber(k.robot(self.id, "scan"), self._on_scan))
         token = None
         try:
             self.ros_graph = open_ros_graph(self.robot, s, self._count_malformed)
-            with self.driver:
+            with self.driver, (self.lidar or contextlib.nullcontext()):
                 token = s.liveliness().declare_token(k.alive(self.id))
                 log.info("agent %d (%s, policy %s, driver %s) up on %s", self.id, self.role, self.pipeline.policy.name,
                          self.driver.name, self.cfg.connect)
@@ -334,16 +363,22 @@ class Agent:
             # only states sent before this step are offered, in a fixed order (determinism)
             take = sorted((m for m in self._in.states if m.step < k), key=lambda m: (m.step, m.id, m.seq))
             self._in.states = [m for m in self._in.states if m.step >= k]
-            scan = self._in.scan
+            scan, scan_t = self._in.scan, clock.t
+            if self.lidar is not None:  # the robot's own lidar: when the newest scan came, to the step
+                if self._in.lidar_n != self._lidar_taken[0]:
+                    self._lidar_taken = (self._in.lidar_n, clock.t)
+                scan_t = self._lidar_taken[1]
         # who is gone: the world's list of step k (every agent drops a robot at the same step)
-        return StepInputs(step=k, t=clock.t, t_run=clock.t, now=clock.t, odometry=odometry, scan=scan, scan_t=clock.t,
+        return StepInputs(step=k, t=clock.t, t_run=clock.t, now=clock.t, odometry=odometry, scan=scan, scan_t=scan_t,
                           fixes=fixes, states=tuple(take), dead=frozenset(clock.dead))
 
     def _sensors_ready(self, k: int) -> bool:
         """Lock-step: step k's scan, and a step-carrying driver's sample of k (with its gyro rate where the base
         has one), and the fix if one is due, are in (zenoh keeps order per key, not across keys)."""
-        scan = self._in.scan
-        if scan is None or scan.step < k:
+        if self.lidar is not None:
+            if not self._lidar_ready(k):
+                return False
+        elif self._in.scan is None or self._in.scan.step < k:
             return False
         if self.driver.answers_steps:
             q = self._in.odometry
@@ -351,6 +386,30 @@ class Agent:
                 return False
         if fix_due(self.robot, k, self.dt):
             return any(f.step == k for f in self._in.fixes)
+        return True
+
+    def _lidar_ready(self, k: int) -> bool:
+        """Lock-step: step k's scans of the robot's own lidar are in, as many as the world's clock says its
+        simulated sensor sent since our first step (caller holds the lock). Bounded by DEVICE_ODOM_WAIT_S: a
+        scan lost on the wire is counted in ``lidar_late`` and written off, never a stall."""
+        sent = self.barrier.clocks[k].device_scans.get(self.id)
+        got = self._in.lidar_n
+        if sent is None:
+            return True  # no simulated sensor: a real one, at its own rate
+        if self._lidar_sync is None:
+            self._lidar_sync = (sent, got)  # our first step: what came before is history
+            return True
+        missing = (sent - self._lidar_sync[0]) - (got - self._lidar_sync[1])
+        if missing <= 0:
+            return True
+        if self._lidar_wait is None or self._lidar_wait[0] != k:
+            self._lidar_wait = (k, time.monotonic() + DEVICE_ODOM_WAIT_S)
+        if time.monotonic() < self._lidar_wait[1]:
+            return False
+        self.lidar_late += 1
+        log.warning("agent %d: step %d: %d lidar scan(s) missing after %.1f s; going on", self.id, k, missing,
+                    DEVICE_ODOM_WAIT_S)
+        self._lidar_sync = (self._lidar_sync[0], self._lidar_sync[1] - missing)
         return True
 
     def _take_odometry(self, k: int, t: float, n_device: int | None) -> tuple[OdomSample, ...]:
@@ -392,8 +451,8 @@ class Agent:
 
     def _current_scan(self, now: float) -> Scan | None:
         """The newest scan: the world's, or the robot's own where its driver reads one (a Jackal's ``LaserScan``:
-        swap the driver, nothing else). Caller holds the lock."""
-        if not self.driver.provides_scan:
+        swap the driver, nothing else), or its own lidar source's. Caller holds the lock."""
+        if self.lidar is not None or not self.driver.provides_scan:
             return self._in.scan
         data = self.driver.read_scan()
         if data is None:

@@ -140,6 +140,7 @@ class Clock(_Msg):
     lockstep: bool = True
     dead: list[int] = []  # robots whose agents are gone (killed or left) as of this step
     device_odom: dict[int, int] = {}  # robot id -> odometry samples its hosted device has sent since lock-step began
+    device_scans: dict[int, int] = {}  # robot id -> whole scans its hosted lidar has sent since lock-step began
 
 
 class FaultRequest(_Msg):

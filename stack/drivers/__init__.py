@@ -25,6 +25,12 @@ BACKENDS = DRIVERS  # python-can's name for it
 
 LIDARS = Registry("lidars", [
     Plugin("world", None, "stack.drivers.lidar:WorldLidar", summary="the simulated world's lidar, on stack/<fleet>/<id>/scan"),
+    Plugin("ros2", "stack.drivers.lidar_ros2:Ros2LidarConfig", "stack.drivers.lidar_ros2:Ros2Lidar",
+           device="stack.sim_bridge.ros2_lidar_sim:Ros2LidarDevice",
+           summary="sensor_msgs/LaserScan from a ROS 2 lidar driver over Zenoh: zenoh-bridge-ros2dds or rmw_zenoh"),
+    Plugin("rplidar", "stack.drivers.rplidar:RplidarConfig", "stack.drivers.rplidar:RplidarLidar",
+           device="stack.sim_bridge.rplidar_sim:RplidarDevice",
+           summary="a Slamtec RPLidar A1/A2 on a serial port (the vendor's protocol, pyserial)"),
 ])
 
 

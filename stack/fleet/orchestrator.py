@@ -25,7 +25,7 @@ import zenoh
 from ..comm import Keys, encode
 from ..comm.messages import FaultAck, FaultRequest
 from ..comm.session import SessionConfig, SessionError, free_tcp_endpoint, open_session
-from ..scenario import Scenario, with_driver_settings
+from ..scenario import Scenario, with_driver_settings, with_lidar_settings
 from .monitor import Monitor
 from .procs import Proc, stop_all, wait_port
 from .report import build_report
@@ -110,7 +110,8 @@ def _agents_scenario(sc: Scenario, out: Path, world: Proc, timeout: float = 30.0
             raise TimeoutError(f"the world did not bring up its simulated devices within {timeout:.0f} s")
         time.sleep(0.05)
     devices = json.loads(path.read_text())
-    settings = {int(rid): dict(d["settings"]) for rid, d in devices.items()}
+    settings = {int(rid): dict(d["settings"]) for rid, d in devices.items() if "settings" in d}
+    lidars = {int(rid): dict(d["lidar"]["settings"]) for rid, d in devices.items() if "lidar" in d}
     if can_log:
         from ..drivers import DRIVERS
 
@@ -118,7 +119,7 @@ def _agents_scenario(sc: Scenario, out: Path, world: Proc, timeout: float = 30.0
             cls = DRIVERS[r.driver].config_class()
             if cls is not None and "can_log" in {f.name for f in fields(cls)}:
                 settings[r.id]["can_log"] = str(out / "logs" / f"can-{r.id}.asc")
-    agents = with_driver_settings(sc, settings)
+    agents = with_lidar_settings(with_driver_settings(sc, settings), lidars)
     target = out / "scenario.agents.yaml"
     target.write_text(agents.to_yaml())
     return target

@@ -35,6 +35,7 @@ from ..comm.messages import Answer, Clock, CmdVel, FaultAck, FaultRequest, Fix, 
 from ..scenario import Scenario, fix_due, slot_position
 from .device_streams import relative_pose
 from .devices import Body, HostedDevice, hosted, make_device
+from .lidar_devices import HostedLidar, make_lidar_device
 from .world import World
 
 log = logging.getLogger("stack.world")
@@ -111,6 +112,8 @@ class WorldServer:
         self.late_steps = 0
         self.devices: dict[int, HostedDevice] = {}  # robots whose driver talks to a simulated device
         self._odom_base: dict[int, int] = {}  # device -> odom_sent when lock-step began
+        self.lidars: dict[int, HostedLidar] = {}  # robots whose lidar source is a simulated sensor
+        self._scan_base: dict[int, int] = {}  # lidar -> scans_sent when lock-step began
         self._sim_odom_origin = {r.id: sim_odom_origin(r) for r in self.sc.robots}
 
     # --- callbacks -------------------------------------------------------------------
@@ -232,7 +235,7 @@ class WorldServer:
                 token.undeclare()
             for sub in subs:
                 sub.undeclare()
-            for dev in self.devices.values():
+            for dev in [*self.devices.values(), *self.lidars.values()]:
                 dev.close()
             self.world.close()
 
@@ -250,12 +253,26 @@ class WorldServer:
             self.devices[r.id] = dev  # closed by run() whatever happens next
             dev.start()
             log.info("world: robot %d: simulated %s device: %s", r.id, r.driver, dev.driver_params())
+        self._start_lidars()
         if self.cfg.out is not None:
             self.cfg.out.mkdir(parents=True, exist_ok=True)
             doc = {str(rid): {"driver": dev.kind, "settings": dev.fleet_params()} for rid, dev in self.devices.items()}
+            for rid, lid in self.lidars.items():
+                doc.setdefault(str(rid), {})["lidar"] = {"source": lid.kind, "settings": lid.driver_params()}
             tmp = self.cfg.out / "devices.json.tmp"
             tmp.write_text(json.dumps(doc, indent=2))
             tmp.replace(self.cfg.out / "devices.json")  # whole or not at all: the fleet reads it as soon as it exists
+
+    def _start_lidars(self) -> None:
+        """A simulated sensor for every robot whose ``lidar.source`` is not the world's (lidar_devices.py)."""
+        for r in self.sc.robots:
+            if r.lidar.source == "world":
+                continue
+            lid = make_lidar_device(r, session=self.s, keys=self.keys, seed=self.sc.seed)
+            lid.ray_caster = lambda x, y, yaw, angles, rid=r.id: self.world.lidar_at(rid, (x, y, yaw), angles)
+            self.lidars[r.id] = lid
+            lid.start()
+            log.info("world: robot %d: simulated %s lidar: %s", r.id, lid.kind, lid.driver_params())
 
     def _body(self, rid: int) -> Body:
         w, i = self.world, self.world.index[rid]
@@ -306,6 +323,10 @@ class WorldServer:
             else:
                 dev.lockstep(0.0)  # from here the device lives on sim time
             self._odom_base[rid] = dev.odom_sent
+        for rid, lid in self.lidars.items():
+            if not self.cfg.realtime:
+                lid.lockstep(0.0)
+            self._scan_base[rid] = lid.scans_sent
 
     def _faults_due(self, fault_pub) -> None:
         """The agent faults (kill, freeze, restart) and the device faults due at this step."""
@@ -342,9 +363,10 @@ class WorldServer:
         sc, w, dt = self.sc, self.world, self.sc.dt
         stamp = self.t if not self.cfg.realtime else time.time()
         device_odom = {rid: dev.odom_sent - self._odom_base.get(rid, 0) for rid, dev in self.devices.items()}
+        device_scans = {rid: lid.scans_sent - self._scan_base.get(rid, 0) for rid, lid in self.lidars.items()}
         clock_pub.put(encode(Clock(step=self.k, t=self.t, dt=dt, answered=answered, lockstep=not self.cfg.realtime,
-                                   dead=dead_now, device_odom=device_odom)))
-        scans = w.lidar()
+                                   dead=dead_now, device_odom=device_odom, device_scans=device_scans)))
+        scans = w.lidar([rid for rid in self.ids if rid not in self.lidars or rid in self.devices])
         for rid in self.ids:
             robot = sc.robots[w.index[rid]]
             if rid not in self.devices:
@@ -356,6 +378,8 @@ class WorldServer:
             if fix_due(robot, self.k, dt):
                 fx, fy = w.position_fix(rid, robot.fix[1])
                 pubs[(rid, "fix")].put(encode(Fix(id=rid, step=self.k, stamp=stamp, x=fx, y=fy, std=robot.fix[1])))
+            if rid not in scans:
+                continue  # its own (simulated) sensor sends its scans
             lid = robot.lidar
             inc = lid.fov / (lid.beams - 1) if lid.beams > 1 else 0.0
             a_min = -lid.fov / 2 if lid.beams > 1 else 0.0
@@ -396,9 +420,12 @@ class WorldServer:
 
     def _advance(self, commands: dict[int, tuple[float, float]]) -> None:
         """The world steps; each device hears where its body went and sends the telemetry due."""
+        before = {rid: self._body(rid) for rid in self.lidars}
         self.world.step(commands, self.sc.dt, exact=self.devices.keys())
         for rid, dev in self.devices.items():
             dev.report(self.t + self.sc.dt, self._body(rid))
+        for rid, lid in self.lidars.items():  # each sensor's scans of the step, at their own times
+            lid.report(self.t, self.t + self.sc.dt, before[rid], self._body(rid))
 
     def _result(self, end_reason: str, arrived_at: float | None, wall: float, log_rows: dict[str, list]) -> dict:
         log_rows["cmd_v"].append(np.zeros(len(self.ids)))
