@@ -26,7 +26,8 @@ FLEET = "checkf"
 JACKAL = {"driver": "jackal", "device": {"jackal": {"clock_offset_s": 3.7, "lidar_rate_hz": 15.0}}}
 CAN = {"driver": "can", "policy": "aina"}
 ROVER = {"driver": "mavlink"}
-KINDS = {0: JACKAL, 1: CAN, 2: ROVER}
+CAN_RPLIDAR = {"driver": "can", "policy": "aina", "lidar": {"source": "rplidar"}}  # its own RPLidar A1 on a pty
+KINDS = {0: JACKAL, 1: CAN, 2: ROVER, 3: CAN_RPLIDAR}
 
 
 def mission() -> dict:
@@ -36,9 +37,10 @@ def mission() -> dict:
         "site": {"datum": [47.397742, 8.545594, 488.0]},
         "robot": {"radius": 0.4, "lidar": {"beams": 90, "fov_deg": 180, "range": 6.0}},
         "formation": {"leader": 0, "goal": [40.0, -1.0], "slots": {1: {"L": 3.0, "psi_deg": 150},
-                                                                   2: {"L": 3.0, "psi_deg": -150}}},
+                                                                   2: {"L": 3.0, "psi_deg": -150},
+                                                                   3: {"L": 6.0, "psi_deg": 180}}},
         "robots": [{"id": 0, "pose": [2.0, -1.0, 30.0]}, {"id": 1, "pose": [-1.0, 1.0, 0.0]},
-                   {"id": 2, "pose": [-1.0, -3.0, 0.0]}],
+                   {"id": 2, "pose": [-1.0, -3.0, 0.0]}, {"id": 3, "pose": [-4.0, -1.0, 0.0]}],
     }
 
 
@@ -100,6 +102,22 @@ def _check(ep: str, mission_path: Path, rid: int, robot_file: Path, *extra: str)
 def _row(stdout: str, item: str) -> str:
     (line,) = [ln for ln in stdout.splitlines() if ln.strip().startswith(item + "  ")]
     return line
+
+
+@pytest.mark.fleet
+def test_check_reads_a_robots_own_rplidar(site):
+    """A CAN base with its own RPLidar A1 (the world's simulated one on a pty, 5.5 Hz, 360 degrees): the check
+    opens the sensor driver, sees its rate and its beams, and says ready."""
+    ep, mission_path, devices, tmp = site
+    lidar = json.loads((tmp / "out" / "devices.json").read_text())["3"]["lidar"]["settings"]
+    own = CAN_RPLIDAR | {"can": devices[3], "lidar": {"source": "rplidar", "rplidar": lidar}}
+    p = _check(ep, mission_path, 3, _robot_file(tmp, "ok-3", own))
+    assert p.returncode == 0 and "result: ready" in p.stdout, p.stdout + p.stderr
+    row = _row(p.stdout, "lidar")
+    assert " ok " in row and "lidar source rplidar" in row, row
+    assert float(row.split(": ")[1].split(" Hz")[0]) == pytest.approx(5.5, rel=0.3), row
+    beams = int(row.split("; ")[1].split(" beams")[0])
+    assert 250 < beams < 450, row  # about 2000 samples/s at 5.5 rev/s, less the invalid ones
 
 
 @pytest.mark.fleet

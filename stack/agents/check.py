@@ -30,11 +30,14 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, TextIO
 
+import numpy as np
+
 from ..comm import Keys, receive
 from ..comm.clockprobe import ClockOffset, router_offset
 from ..comm.messages import Fix
 from ..comm.session import ConfigFileError, SessionConfig, SessionError, open_session
 from ..drivers import LIDARS, DriverError, DriverLimits, make_driver
+from ..drivers.lidar import make_lidar
 from ..policies import make_policy
 from .frames import OdomFrame, StreamClock
 from .step import StepConfig
@@ -160,6 +163,7 @@ class _Run:
     rows: list[Row] = field(default_factory=list)
     driver: Any = None
     driver_error: str | None = None
+    lidar_error: str | None = None
     lidar_name: str = ""
     needs_lidar: bool = True
     window: tuple[float, float] = (0.0, 0.0)
@@ -261,8 +265,16 @@ def _make_driver(run: _Run, session, keys: Keys):
 def _open_lidar(run: _Run, session, keys: Keys):
     """The robot's lidar source from the registry (any source that calls ``on_scan`` with each scan)."""
     name = run.lidar_name = getattr(run.robot.lidar, "source", "world")
-    return LIDARS[name].make()(run.robot.id, session=session, keys=keys, on_scan=run.heard.on_scan,
-                               on_malformed=run.heard.on_malformed)
+    if name == "world":
+        return LIDARS[name].make()(run.robot.id, session=session, keys=keys, on_scan=run.heard.on_scan,
+                                   on_malformed=run.heard.on_malformed)
+    lidar = make_lidar(name, run.robot.id, session=session, keys=keys, clock=time.monotonic,
+                       on_scan=run.heard.on_scan, on_malformed=run.heard.on_malformed, **run.robot.lidar.params)
+    try:
+        lidar.open()
+    except DriverError as e:  # LidarError: the port missing, the sensor mute or in protection stop
+        run.lidar_error = str(e)
+    return lidar
 
 
 def _listen(run: _Run) -> None:
@@ -361,11 +373,17 @@ def _lidar_rows(run: _Run) -> None:
     if d.provides_scan and run.driver_error is not None:
         run.add("lidar", "MISSING", f"{where}: the driver did not open")
         return
+    if run.lidar_error is not None:
+        run.add("lidar", "MISSING", f"{where}: {run.lidar_error}")
+        return
     if not _stream_row(run, "lidar", s, StepConfig().lidar_stale_s if run.needs_lidar else None, where, why):
         return
     scan, lid = s.last, r.lidar
     n = len(scan.ranges)
-    fov = math.degrees(scan.angle_increment * (n - 1)) if n > 1 else 0.0
+    if hasattr(scan, "angles"):  # a sensor source's LidarScan: bearings of its own
+        fov = math.degrees(float(np.nanmax(scan.angles) - np.nanmin(scan.angles))) if n > 1 else 0.0
+    else:
+        fov = math.degrees(scan.angle_increment * (n - 1)) if n > 1 else 0.0
     run.rows[-1].text += (f"; {n} beams over {fov:.0f} deg to {scan.range_max:g} m, taken as the configured {lid.beams}"
                           f" beams over {math.degrees(lid.fov):.0f} deg to {lid.range:g} m")
     run.add("lidar clock", "info", s.clock_text())
