@@ -76,6 +76,10 @@ class AgentConfig:
     is the start pose: the device booted there; right after a restart too), ``boot-position`` (origin at the start
     position, headings the site's: an ArduPilot EKF origin) or ``first`` (the first sample is at the start pose;
     fresh starts only). None: the robot's own, resolved from the scenario (``RobotConfig.odom_origin``)."""
+    record: str | None = None
+    """Record this robot's own view to this MCAP file (``stack.agents.view``; the ``viz`` extra)."""
+    viz: str | None = None
+    """Serve this robot's own view live (Foxglove WebSocket) on this ``tcp/HOST:PORT``."""
     stop: threading.Event = field(default_factory=threading.Event)
     """Set to end the loop (signal handlers set it)."""
 
@@ -125,6 +129,7 @@ class Agent:
         self.barrier = StepBarrier(self.id, self._cv, neighbour_wait_s=NEIGHBOUR_WAIT_S,
                                    device_wait_s=DEVICE_ODOM_WAIT_S, sensor_timeout_s=cfg.sensor_timeout_s)
         self.driver: Driver = self._make_driver()
+        self.view = None  # this robot's own recording / live view (``view.AgentView``), when asked for
 
     @property
     def role(self) -> str:
@@ -256,6 +261,17 @@ class Agent:
 
     # --- main loop -------------------------------------------------------------------
     def run(self) -> int:
+        if self.cfg.record is not None or self.cfg.viz is not None:  # a RecorderError here: before any command
+            from .view import start_view
+
+            self.view = start_view(self.cfg)
+        try:
+            return self._run()
+        finally:
+            if self.view is not None:
+                self.view.stop()
+
+    def _run(self) -> int:
         k = self.keys
         s = self.session
         block = zenoh.CongestionControl.BLOCK
@@ -428,6 +444,8 @@ class Agent:
         self.driver.command(out.v, out.w, step=k)
         if self.cfg.lockstep and not self.driver.answers_steps:  # the command went over the device's wire
             self._answer_pub.put(encode(Answer(id=self.id, step=k, stamp=self._stamp())))
+        if self.view is not None:  # after the answer: the world's step waits for nothing of it
+            self.view.on_step(self.pipeline, inp, out, self.driver.last_sent)
         self.hist.add((time.perf_counter() - self._in.sensor_perf) * 1000.0)
         if k % 10 == 0:
             self._publish_diag("running")
@@ -449,6 +467,8 @@ class Agent:
                  odom_stale=pc.odom_stale, lidar_stale=pc.lidar_stale, scans_from_driver=self.scans_from_driver,
                  shield_masked=getattr(pl.policy, "masked", None), links=pl.radio.links(), stuck=pl.decision.livelock())
         self._diag_pub.put(encode(d))
+        if self.view is not None:
+            self.view.on_diag(d)
 
 
 def _sample(odo, fix, t: float) -> OdomSample:

@@ -13,6 +13,8 @@ from ..drivers import DriverError, UnknownDriver
 from ..policies import PolicyUnavailable
 from ..policies import factory as policy_factory
 from ..scenario import ScenarioError, driver_names, load_scenario, policy_names, with_driver_settings, with_overrides
+from ..viz import RecorderError, VizUnavailable, require_sdk
+from ..viz.endpoint import DEFAULT_VIZ, parse_viz_endpoint
 from .agent import Agent, AgentConfig
 
 log = logging.getLogger("stack.agent")
@@ -39,6 +41,9 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--allow-remote", action="store_true", help="allow a router endpoint off loopback")
     ap.add_argument("--can-log", metavar="FILE", help="can driver: log every frame to FILE (.asc, .blf, .log, .csv; can.Logger)")
     ap.add_argument("--zenoh-config", metavar="FILE", help="zenoh json5 config layered under ours (deploy/: TLS, access control)")
+    ap.add_argument("--record", metavar="FILE", help="record this robot's own view to an MCAP file (the 'viz' extra)")
+    ap.add_argument("--viz", nargs="?", const=DEFAULT_VIZ, metavar="EP",
+                    help=f"serve this robot's own view live, Foxglove WebSocket (default {DEFAULT_VIZ}; loopback unless --allow-remote)")
     ap.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     return ap
 
@@ -59,8 +64,13 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
         if driver != "can":
             raise ScenarioError(f"--can-log: robot {a.id}'s driver is {driver}, not can")
         sc = with_driver_settings(sc, {a.id: {"can_log": a.can_log}})
+    if a.viz is not None:
+        parse_viz_endpoint(a.viz, a.allow_remote)
+    if a.record or a.viz is not None:
+        require_sdk("--record" if a.record else "--viz")
     return AgentConfig(robot_id=a.id, scenario=sc, connect=a.connect, fleet=a.fleet, lockstep=a.lockstep,
-                       steps=a.steps, seed=a.seed, zenoh_config=a.zenoh_config, allow_remote=a.allow_remote)
+                       steps=a.steps, seed=a.seed, zenoh_config=a.zenoh_config, allow_remote=a.allow_remote,
+                       record=a.record, viz=a.viz)
 
 
 def main(cfg: AgentConfig) -> int:
@@ -90,13 +100,13 @@ def cli(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=a.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         cfg = config_from_args(a)
-    except (ScenarioError, EndpointError) as e:
+    except (ScenarioError, EndpointError, ValueError, VizUnavailable) as e:  # ValueError: a bad --viz endpoint
         print(f"stack-agent: {e}", file=sys.stderr)
         return 2
     try:
         policy_factory(cfg.policy or cfg.scenario.robot(cfg.robot_id).policy)  # a missing extra: said before connecting
         return main(cfg)
-    except (PolicyUnavailable, UnknownDriver, ConfigFileError) as e:
+    except (PolicyUnavailable, UnknownDriver, ConfigFileError, RecorderError) as e:
         print(f"stack-agent: {e}", file=sys.stderr)
         return 2
     except (TimeoutError, SessionError, DriverError) as e:  # e.g. a device that does not answer: zero was sent
