@@ -16,6 +16,9 @@ FORBIDDEN = {
     "estimation": {"stack.comm", "stack.drivers", "stack.agents", "stack.sim_bridge", "stack.policies", "stack.fleet", "zenoh"},
     "policies": {"stack.comm", "stack.drivers", "stack.agents", "stack.sim_bridge", "stack.fleet", "zenoh", "pybullet"},
     "agents": {"stack.sim_bridge", "stack.fleet", "pybullet"},
+    # the Foxglove view of our messages and its writer, shared by the fleet's recorder and a robot's own view
+    "viz": {"stack.sim_bridge", "stack.fleet", "stack.agents", "stack.drivers", "stack.policies", "stack.estimation",
+            "stack.train", "pybullet", "matplotlib", "PIL", "torch"},
 }
 
 
@@ -63,6 +66,20 @@ def test_rooms_use_the_shared_models():
                        ("train/drlworld.py", "observation"), ("estimation/pose.py", "geometry")):
         pkg = rel.split("/")[0]
         assert f"stack.models.{model}" in _imports(ROOT / rel, pkg), f"{rel} does not use stack.models.{model}"
+
+
+def test_the_agent_reaches_the_foxglove_sdk_only_through_its_view():
+    """A robot's core install has no Foxglove SDK: only stack/agents/view.py (imported when --record or --viz is
+    given) imports it, and the agent shares the fleet's builders and writer through stack.viz, not stack.fleet."""
+    for path in (ROOT / "agents").rglob("*.py"):
+        mods = _imports(path, "agents")
+        if path.name != "view.py":
+            assert not any(m.split(".")[0] == "foxglove" for m in mods), path
+            assert "stack.viz.writer" not in mods, path
+    view = _imports(ROOT / "agents" / "view.py", "agents")
+    assert {"stack.viz", "stack.viz.writer"} <= view and not any(m.startswith("stack.fleet") for m in view)
+    for rel in ("fleet/record.py", "fleet/viz_messages.py"):
+        assert _imports(ROOT / rel, "fleet") & {"stack.viz.writer", "stack.viz.messages", "stack.viz.endpoint"}, rel
 
 
 def test_every_zenoh_session_goes_through_the_session_helper():

@@ -79,6 +79,10 @@ class AgentConfig:
     is the start pose: the device booted there; right after a restart too), ``boot-position`` (origin at the start
     position, headings the site's: an ArduPilot EKF origin) or ``first`` (the first sample is at the start pose;
     fresh starts only). None: the robot's own, resolved from the scenario (``RobotConfig.odom_origin``)."""
+    record: str | None = None
+    """Record this robot's own view to this MCAP file (``stack.agents.view``; the ``viz`` extra)."""
+    viz: str | None = None
+    """Serve this robot's own view live (Foxglove WebSocket) on this ``tcp/HOST:PORT``."""
     stop: threading.Event = field(default_factory=threading.Event)
     """Set to end the loop (signal handlers set it)."""
 
@@ -135,6 +139,7 @@ class Agent:
         self._lidar_wait: tuple[int, float] | None = None  # lock-step: (step, wall deadline) of a wait for scans
         self._lidar_taken = (0, None)  # lock-step: (lidar_n, sim time) when a new scan was last taken
         self.lidar_late = 0  # lock-step steps that went on without all of the lidar's scans
+        self.view = None  # this robot's own recording / live view (``view.AgentView``), when asked for
 
     @property
     def role(self) -> str:
@@ -286,6 +291,17 @@ class Agent:
 
     # --- main loop -------------------------------------------------------------------
     def run(self) -> int:
+        if self.cfg.record is not None or self.cfg.viz is not None:  # a RecorderError here: before any command
+            from .view import start_view
+
+            self.view = start_view(self.cfg)
+        try:
+            return self._run()
+        finally:
+            if self.view is not None:
+                self.view.stop()
+
+    def _run(self) -> int:
         k = self.keys
         s = self.session
         block = zenoh.CongestionControl.BLOCK
@@ -492,6 +508,8 @@ class Agent:
         self.driver.command(out.v, out.w, step=k)
         if self.cfg.lockstep and not self.driver.answers_steps:  # the command went over the device's wire
             self._answer_pub.put(encode(Answer(id=self.id, step=k, stamp=self._stamp())))
+        if self.view is not None:  # after the answer: the world's step waits for nothing of it
+            self.view.on_step(self.pipeline, inp, out, self.driver.last_sent)
         self.hist.add((time.perf_counter() - self._in.sensor_perf) * 1000.0)
         if self.ros_graph is not None:  # hands the step over to its publisher thread; a goal for the next step
             self.ros_graph.step(inp.t, self._stamp(), self.pipeline)
@@ -515,6 +533,8 @@ class Agent:
                  odom_stale=pc.odom_stale, lidar_stale=pc.lidar_stale, scans_from_driver=self.scans_from_driver,
                  shield_masked=getattr(pl.policy, "masked", None), links=pl.radio.links(), stuck=pl.decision.livelock())
         self._diag_pub.put(encode(d))
+        if self.view is not None:
+            self.view.on_diag(d)
 
 
 def _sample(odo, fix, t: float) -> OdomSample:

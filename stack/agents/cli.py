@@ -14,6 +14,8 @@ from ..policies import PolicyUnavailable
 from ..policies import factory as policy_factory
 from ..robotfile import describe, load_mission
 from ..scenario import ScenarioError, driver_names, policy_names, with_driver_settings, with_overrides
+from ..viz import RecorderError, VizUnavailable, require_sdk
+from ..viz.endpoint import DEFAULT_VIZ, parse_viz_endpoint
 from .agent import Agent, AgentConfig
 from .check import CHECK_DURATION_S, run_check
 
@@ -45,6 +47,9 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--check", action="store_true", help="open the robot's devices, report what is there, command nothing")
     ap.add_argument("--check-duration", type=float, default=CHECK_DURATION_S, metavar="S",
                     help="--check: how long to listen (default %(default)s s)")
+    ap.add_argument("--record", metavar="FILE", help="record this robot's own view to an MCAP file (the 'viz' extra)")
+    ap.add_argument("--viz", nargs="?", const=DEFAULT_VIZ, metavar="EP",
+                    help=f"serve this robot's own view live, Foxglove WebSocket (default {DEFAULT_VIZ}; loopback unless --allow-remote)")
     ap.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     return ap
 
@@ -68,8 +73,13 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
         sc = with_driver_settings(sc, {a.id: {"can_log": a.can_log}})
     log.info("agent %d resolved (%s%s): %s", a.id, a.scenario, f" + {a.robot}" if a.robot else "",
              describe(sc.robot(a.id)))
+    if a.viz is not None:
+        parse_viz_endpoint(a.viz, a.allow_remote)
+    if a.record or a.viz is not None:
+        require_sdk("--record" if a.record else "--viz")
     return AgentConfig(robot_id=a.id, scenario=sc, connect=a.connect, fleet=a.fleet, lockstep=a.lockstep,
-                       steps=a.steps, seed=a.seed, zenoh_config=a.zenoh_config, allow_remote=a.allow_remote)
+                       steps=a.steps, seed=a.seed, zenoh_config=a.zenoh_config, allow_remote=a.allow_remote,
+                       record=a.record, viz=a.viz)
 
 
 def _check_flags(a: argparse.Namespace) -> None:
@@ -106,13 +116,13 @@ def cli(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=a.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         cfg = config_from_args(a)
-    except (ScenarioError, EndpointError) as e:
+    except (ScenarioError, EndpointError, ValueError, VizUnavailable) as e:  # ValueError: a bad --viz endpoint
         print(f"stack-agent: {e}", file=sys.stderr)
         return 2
     try:
         policy_factory(cfg.policy or cfg.scenario.robot(cfg.robot_id).policy)  # a missing extra: said before connecting
         return run_check(cfg, a.check_duration) if a.check else main(cfg)
-    except (PolicyUnavailable, UnknownDriver, ConfigFileError) as e:
+    except (PolicyUnavailable, UnknownDriver, ConfigFileError, RecorderError) as e:
         print(f"stack-agent: {e}", file=sys.stderr)
         return 2
     except (TimeoutError, SessionError, DriverError) as e:  # e.g. a device that does not answer: zero was sent

@@ -95,6 +95,7 @@ class StepOutput:
     cov_trace: float
     d_goal: float | None
     stale: str | None  # why the command is zero: "odometry", "lidar", or None
+    target: tuple[float, float] | None = None  # where the decision layer steers: the goal, the slot, an escape waypoint
 
 
 @dataclass
@@ -168,15 +169,15 @@ class StepPipeline:
         if inp.scan is not None:
             self.scans.append(np.asarray(inp.scan.ranges, dtype=float))  # once per period: o_z one period apart
         stale = self._stale(inp)
-        v, w, situation, obs = 0.0, 0.0, "waiting", None
+        v, w, situation, obs, target = 0.0, 0.0, "waiting", None, None
         if self.scans:
             dec = self._decide(inp, pose)
-            situation, obs = dec.situation, dec.obs
+            situation, obs, target = dec.situation, dec.obs, dec.target
             if dec.obs is not None and stale is None:
                 v, w = self._act(dec, inp.t_run)
         d_goal = float(obs.d_g) if situation == "peer" and obs is not None else None
         return StepOutput(v=v, w=w, pose=pose, situation=situation, cov_trace=self.estimator.cov_trace,
-                          d_goal=d_goal, stale=stale)
+                          d_goal=d_goal, stale=stale, target=target)
 
     def estimate(self, inp: StepInputs) -> None:
         """Each odometry sample: its rates, then the motion over the interval since the previous one

@@ -4,7 +4,8 @@ The :class:`Recorder` only listens: on an open Zenoh session it subscribes to wh
 a fleet (world clock, truth, status and fault requests; each robot's scan, state, command and diag;
 the agents' liveliness) and writes Foxglove messages (:mod:`.viz_messages`) with the Foxglove SDK,
 to a file (``foxglove.open_mcap``) and/or a live server (``foxglove.start_server``), both sinks of one
-SDK context, so the live view and the recording carry the same channels.
+SDK context, so the live view and the recording carry the same channels (the sinks, the queue and the
+writer thread: :mod:`stack.viz.writer`, shared with a robot's own view).
 
 Writing never blocks a Zenoh callback (nor the control loops behind it): callbacks only enqueue the
 raw payload; one writer thread decodes, converts and logs. The queue is bounded; a sample that finds
@@ -21,31 +22,26 @@ from __future__ import annotations
 
 import json
 import logging
-import queue
 import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import foxglove
-import msgspec
 import zenoh
-from foxglove import Capability, Channel, Context
+from foxglove import Channel, Context
 from foxglove.channels import FrameTransformsChannel, LaserScanChannel, LogChannel, PoseInFrameChannel, SceneUpdateChannel
-from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 from foxglove.messages import Log, LogLevel
 
 from ..comm import Keys, MessageError, decode
 from ..comm.messages import Clock, CmdVel, Diag, FaultAck, FaultRequest, Scan, State, Truth, WorldStatus
-from ..comm.session import EndpointError, check_endpoint
 from ..scenario import Scenario
+from ..viz.endpoint import DEFAULT_VIZ, parse_viz_endpoint  # noqa: F401 - the fleet's CLI and tests use them from here
+from ..viz.writer import COMPRESSION, QueuedWriter, RecorderError, SinkConfig  # noqa: F401
 from . import viz_messages as vm
 from .viz_handlers import HANDLERS
 
 log = logging.getLogger("stack.record")
 
-DEFAULT_VIZ = "tcp/127.0.0.1:8765"
-COMPRESSION = {"zstd": MCAPCompression.Zstd, "lz4": MCAPCompression.Lz4, "none": None}
 _WORLD_KINDS = {"clock": Clock, "truth": Truth, "status": WorldStatus, "fault": FaultRequest, "fault_ack": FaultAck}
 
 
@@ -58,57 +54,23 @@ class _RecordedScan(Scan):
 
 
 _ROBOT_KINDS = {"scan": _RecordedScan, "state": State, "cmd_vel": CmdVel, "diag": Diag}
-_STOP = object()
-_JSON = msgspec.json.Encoder()
-
-
-class RecorderError(RuntimeError):
-    """The recording or the live server could not start (one line: a path, a port in use)."""
-
-
-def parse_viz_endpoint(text: str | None, allow_remote: bool = False) -> tuple[str, int]:
-    """``tcp/HOST:PORT`` (or ``ws/HOST:PORT``) of ``--viz`` -> (host, port); loopback unless ``allow_remote``.
-    None or empty: the default, :data:`DEFAULT_VIZ`. A bad one is a ValueError (one line)."""
-    text = text or DEFAULT_VIZ
-    try:
-        check_endpoint(text, allow_remote)
-    except EndpointError as e:
-        raise ValueError(f"--viz: {e}") from None
-    proto, rest = text.split("/", 1)
-    if proto not in ("tcp", "ws"):
-        raise ValueError(f"--viz: endpoint {text!r}: the live view speaks WebSocket over tcp (tcp/HOST:PORT)")
-    host, port = rest.rsplit(":", 1)
-    return host.strip("[]"), int(port)
 
 
 @dataclass
-class RecorderConfig:
-    """One recording of one fleet."""
+class RecorderConfig(SinkConfig):
+    """One recording of one fleet (where it goes: :class:`~stack.viz.writer.SinkConfig`)."""
 
-    out: Path | None = None
-    """The MCAP file to write (e.g. ``runs/x/run.mcap``); None: live view only."""
-    viz: str | None = None
-    """Live server endpoint ``tcp/HOST:PORT`` (see :func:`parse_viz_endpoint`); None: no live server."""
-    allow_remote: bool = False
-    """Let the live server listen off loopback."""
     realtime: bool | None = None
     """Stamp with wall time (True) or sim time (False); None: as the world's first clock says."""
-    queue_size: int = 20_000
-    """Samples waiting for the writer thread at most; past that, new ones are dropped and counted."""
-    compression: str = "zstd"
-    """MCAP chunk compression: zstd, lz4 or none."""
     links_window_steps: int = 10
     """The comm graph is drawn once per this many steps (the agents' diag period), from the counts of the last window."""
     scene_every_s: float = 1.0
     """The obstacles' scene is sent again this often (live clients that join late, players that seek)."""
 
     def __post_init__(self) -> None:
-        if self.compression not in COMPRESSION:
-            raise ValueError(f"recorder: compression {self.compression!r}: expected one of {', '.join(COMPRESSION)}")
-        if self.queue_size < 1 or self.links_window_steps < 1 or not self.scene_every_s > 0:
+        super().__post_init__()
+        if self.links_window_steps < 1 or not self.scene_every_s > 0:
             raise ValueError("recorder: queue_size and links_window_steps must be >= 1, scene_every_s > 0")
-        if self.viz is not None:
-            parse_viz_endpoint(self.viz, self.allow_remote)
 
 
 class _Channels:
@@ -139,45 +101,28 @@ class _Channels:
             ch.close()
 
 
-class Recorder:
+class Recorder(QueuedWriter):
     """Listens to one fleet and writes/serves it; ``start()`` then ``stop()`` (or a ``with`` block)."""
 
     def __init__(self, session: zenoh.Session, keys: Keys, scenario: Scenario, cfg: RecorderConfig):
-        self.s, self.keys, self.sc, self.cfg = session, keys, scenario, cfg
+        super().__init__(cfg, server_name=f"stack {keys.fleet}")
+        self.s, self.keys, self.sc = session, keys, scenario
         self.ids = list(scenario.ids)
         self.realtime = cfg.realtime
-        self.dropped = 0  # samples that found the queue full
-        self.malformed = 0  # samples that did not decode
-        self.counts: dict[str, int] = {}  # messages written per topic
         self.done = threading.Event()  # the world said it is done
-        self._q: queue.Queue = queue.Queue(maxsize=cfg.queue_size)
-        self._lock = threading.Lock()
         self._subs: list = []
-        self._thread: threading.Thread | None = None
-        self._writer = self._server = self._ch = self._ctx = None
+        self._ch = None
         self._pending: list = []  # samples before the first clock, while the time base is unknown
         self._view = _View()
 
     # --- life cycle ------------------------------------------------------------------
     def start(self) -> "Recorder":
-        ctx = self._ctx = Context()  # kept: channels of a context that is gone are closed
-        try:
-            if self.cfg.out is not None:
-                self.cfg.out.parent.mkdir(parents=True, exist_ok=True)
-                opts = MCAPWriteOptions(compression=COMPRESSION[self.cfg.compression])
-                self._writer = foxglove.open_mcap(self.cfg.out, allow_overwrite=True, context=ctx, writer_options=opts)
-            if self.cfg.viz is not None:
-                host, port = parse_viz_endpoint(self.cfg.viz, self.cfg.allow_remote)
-                self._server = foxglove.start_server(name=f"stack {self.keys.fleet}", host=host, port=port,
-                                                     capabilities=[Capability.Time], context=ctx)
-        except (RuntimeError, OSError) as e:
-            self._close_sinks()
-            raise RecorderError(f"recorder: {str(e).splitlines()[0]}") from None
-        self._ch = _Channels(ctx, self.ids)
-        self._thread = threading.Thread(target=self._write_loop, name="recorder", daemon=True)
-        self._thread.start()
+        self.open()
         self._subscribe()
         return self
+
+    def open_channels(self, ctx: Context) -> None:
+        self._ch = _Channels(ctx, self.ids)
 
     def _subscribe(self) -> None:
         k, s = self.keys, self.s
@@ -185,21 +130,12 @@ class Recorder:
         self._subs += [s.declare_subscriber(k.all_robots(name), self._enqueue(name)) for name in _ROBOT_KINDS]
         self._subs.append(s.liveliness().declare_subscriber(k.all_alive, self._on_alive, history=True))
 
-    @property
-    def port(self) -> int | None:
-        """The live server's port (useful with port 0), None without one."""
-        return self._server.port if self._server is not None else None
-
     def stop(self) -> None:
         """Stop listening, write what is queued, the closing events and metadata; close the file and server."""
         for sub in self._subs:
             sub.undeclare()
         self._subs = []
-        if self._thread is not None:
-            self._q.put(_STOP)  # blocks only if full: the writer is draining it
-            self._thread.join()
-            self._thread = None
-        self._close_sinks()
+        self.close()
 
     def __enter__(self) -> "Recorder":
         return self.start()
@@ -207,45 +143,20 @@ class Recorder:
     def __exit__(self, *exc) -> None:
         self.stop()
 
-    def _close_sinks(self) -> None:
-        if self._writer is not None:
-            self._writer.close()
-            self._writer = None
-        if self._server is not None:
-            self._server.stop()
-            self._server = None
-
     # --- Zenoh callbacks: enqueue only --------------------------------------------------
     def _enqueue(self, kind: str):
         def callback(sample: zenoh.Sample) -> None:
-            self._put((kind, str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+            self.put((kind, str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
         return callback
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         left = sample.kind == zenoh.SampleKind.DELETE
-        self._put(("alive", str(sample.key_expr), left, time.time_ns()))
+        self.put(("alive", str(sample.key_expr), left, time.time_ns()))
 
-    def _put(self, item) -> None:
-        try:
-            self._q.put_nowait(item)
-        except queue.Full:
-            with self._lock:
-                self.dropped += 1
+    _put = QueuedWriter.put
 
     # --- the writer thread ---------------------------------------------------------------
-    def _write_loop(self) -> None:
-        while True:
-            item = self._q.get()
-            if item is _STOP:
-                break
-            try:
-                self._handle(*item)
-            except Exception:  # noqa: BLE001 - one bad sample must not end the recording
-                log.exception("recorder: sample on %s not recorded", item[1])
-                self.malformed += 1
-        self._finish()
-
-    def _handle(self, kind: str, key: str, payload, recv_ns: int) -> None:
+    def handle(self, kind: str, key: str, payload, recv_ns: int) -> None:
         if kind == "alive":
             msg = payload
         else:
@@ -270,40 +181,26 @@ class Recorder:
             self._pending = []
         _dispatch(self, kind, key, msg, recv_ns)
 
-    def _finish(self) -> None:
+    def finish(self) -> None:
         if self.realtime is None:  # never heard a clock: what came is stamped as lock-step (sim time 0)
             self.realtime = False
             for p in self._pending:
                 _dispatch(self, *p)
-        ns = self._view.last_ns
-        with self._lock:
-            dropped = self.dropped
+        dropped = self.dropped_now()
         level = LogLevel.Warning if dropped or self.malformed else LogLevel.Info
-        self.event(ns, f"recorder: {sum(self.counts.values())} messages written, {dropped} dropped "
-                       f"(queue full), {self.malformed} malformed", level)
-        if self._writer is not None:
-            self._writer.write_metadata("stack.run", {
-                "scenario": self.sc.name, "fleet": self.keys.fleet, "robots": json.dumps(self.ids),
-                "time": "wall" if self.realtime else "sim", "dropped": str(dropped), "malformed": str(self.malformed),
-                "queue_size": str(self.cfg.queue_size), "counts": json.dumps(self.counts)})
-            self._writer.attach(log_time=0, create_time=time.time_ns(), name="scenario.yaml",
-                                media_type="application/yaml", data=self.sc.to_yaml().encode())
+        self.event(self.last_ns, f"recorder: {sum(self.counts.values())} messages written, {dropped} dropped "
+                                 f"(queue full), {self.malformed} malformed", level)
+        self.write_metadata("stack.run", {
+            "scenario": self.sc.name, "fleet": self.keys.fleet, "robots": json.dumps(self.ids),
+            "time": "wall" if self.realtime else "sim", "dropped": str(dropped), "malformed": str(self.malformed),
+            "queue_size": str(self.cfg.queue_size), "counts": json.dumps(self.counts), "writer_cpu_s": f"{self.cpu_s():.3f}"})
+        self.attach("scenario.yaml", "application/yaml", self.sc.to_yaml().encode(), time.time_ns())
         self._ch.close()
 
     # --- what the handlers use -------------------------------------------------------------
     def stamp(self, sim_t: float, recv_ns: int) -> int:
         """A message's time: its sim time in lock-step, the wall time it arrived in real time."""
         return recv_ns if self.realtime else int(round(sim_t * 1e9))
-
-    def write(self, channel, topic: str, msg, ns: int) -> None:
-        channel.log(_JSON.encode(msg) if isinstance(msg, dict) else msg, log_time=ns)
-        self.counts[topic] = self.counts.get(topic, 0) + 1
-        self._view.last_ns = max(self._view.last_ns, ns)
-
-    def broadcast_time(self, ns: int) -> None:
-        """Live clients follow the fleet's clock (sim time in lock-step)."""
-        if self._server is not None:
-            self._server.broadcast_time(ns)
 
     def event(self, ns: int, text: str, level=LogLevel.Info) -> None:
         self.write(self._ch.events, vm.TOPICS["events"], Log(timestamp=vm.ts(ns), level=level, message=text,
@@ -314,7 +211,6 @@ class _View:
     """What the writer thread remembers between messages: the fleet as it last saw it."""
 
     def __init__(self):
-        self.last_ns = 0
         self.t = 0.0
         self.step = -1
         self.dead: set[int] = set()
