@@ -5,7 +5,8 @@
 
 Backends:
 - ``fleet`` (default): one ``stack-fleet run SCENARIO --policy fuzzy|fuzzy-lstm --seed S --loss X``
-  process per run (``--jobs N`` at a time, or ``--engine dask``: ``stack.fleet.jobs``) (router, pybullet world, one agent per robot, EKF on noisy odometry + fixes,
+  process per run, ``--jobs N`` at a time or on Dask (``--engine dask``, ``stack.fleet.jobs``)
+  (router, pybullet world, one agent per robot, EKF on noisy odometry + fixes,
   lidar noise from the scenario). "No MRC" is ``--policy fuzzy`` on a copy of the scenario with
   ``robot.fuzzy.coordinator: none``.
 - ``numpy``: :mod:`stack.train.fuzzyworld` (exact pose, lidar noise, per-message loss): 100x faster,

@@ -98,7 +98,8 @@ def test_parallel_and_dask_sweeps_give_the_serial_rows(tmp_path):
     the same reports (wall times aside); side by side, each run its own fleet name and router port."""
     folder = _folder(tmp_path, duration=1.5)
     rows, reports = {}, {}
-    for name, flags in (("serial", ["--jobs", "1"]), ("jobs2", ["--jobs", "2"]), ("dask", ["--engine", "dask", "--jobs", "2"])):
+    engines = (("serial", ["--jobs", "1"]), ("jobs2", ["--jobs", "2"]), ("dask", ["--engine", "dask", "--jobs", "2"]))
+    for name, flags in engines:
         out = tmp_path / name
         proc = run_cli(["stack-fleet", "bench", "--scenarios", str(folder), "--out", str(out), "--sweep", "loss=0,0.5",
                         "--seeds", "1", *flags], timeout=240)

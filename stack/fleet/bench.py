@@ -1,7 +1,7 @@
 """``stack-fleet bench``: every scenario under a folder x every implemented policy it is meant for.
 
-One lock-step run each (the scenario's seed, or ``--seed``; ``--jobs N`` at a time or on Dask, :mod:`.jobs`); one table in markdown and
-JSON beside the runs, with the paper's reference figure of each scenario in the last column.
+One lock-step run each (the scenario's seed, or ``--seed``; ``--jobs N`` at a time, or on Dask: :mod:`.jobs`);
+one table in markdown and JSON beside the runs, with the paper's reference figure of each scenario in the last column.
 """
 
 from __future__ import annotations
@@ -154,7 +154,8 @@ def sweep(folder: Path, out: Path, param: str, values: list[float], *, seeds: in
     out.mkdir(parents=True, exist_ok=True)
     cells = [(sc, pol, value) for sc, pol in plan for value in values]
     jobs = [Job(fleet_task, (with_overrides(sc, policy=pol, seed=s, duration=duration, **{SWEEPS[param]: value}),
-                             (out / f"{sc.name}-{pol}-{param}{value:g}-s{s}").resolve()), f"{sc.name}/{pol} {param}={value:g} seed {s}")
+                             (out / f"{sc.name}-{pol}-{param}{value:g}-s{s}").resolve()),
+                f"{sc.name}/{pol} {param}={value:g} seed {s}")
             for sc, pol, value in cells for s in range(seeds)]
     results = [failed_fleet(r.message) if isinstance(r, JobFailed) else r
                for r in run_jobs(jobs, engine, desc=f"{param} sweep")]

@@ -236,7 +236,7 @@ def run_jobs(jobs: list[Job], cfg: EngineConfig = EngineConfig(), *, desc: str =
 
     old = _sigterm_as_interrupt()
     try:
-        if cfg.engine == "dask":
+        if jobs and cfg.engine == "dask":
             from .jobs_dask import run_dask
 
             run_dask(jobs, lanes(len(jobs)), cfg, finish)

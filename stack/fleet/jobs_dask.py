@@ -29,7 +29,8 @@ def check_dask() -> None:
 
 
 def check_scheduler(address: str, allow_remote: bool) -> str:
-    """``tcp://HOST:PORT`` (or ``tls://``); off loopback only with ``allow_remote`` (:func:`~stack.comm.session.check_endpoint`)."""
+    """``tcp://HOST:PORT`` (or ``tls://``); off loopback only with ``allow_remote``
+    (:func:`~stack.comm.session.check_endpoint`, the fleet's endpoint rule)."""
     from ..comm.session import EndpointError, check_endpoint
 
     m = re.fullmatch(r"(tcp|tls)://(\[[^\]]+\]|[^:/\[\]]+):(\d+)", address)
