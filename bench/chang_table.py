@@ -123,6 +123,15 @@ def table(results: dict, seeds: int, backend: str) -> str:
     return "\n".join(lines)
 
 
+def _by_key(plan: list, rows: dict[int, dict]) -> dict[str, list]:
+    """The rows finished so far (index into ``plan``) under their ``scenario|coordinator|loss`` keys."""
+    out: dict[str, list] = {}
+    for j in sorted(rows):
+        (name, _, coord, loss), seed = plan[j]
+        out.setdefault(f"{name}|{coord}|{loss}", []).append(rows[j] | {"seed": seed})
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--backend", choices=("fleet", "numpy"), default="fleet")
@@ -163,7 +172,14 @@ def main(argv=None) -> int:
         out = a.out.resolve()
         jobs = [fleet_job(ROOT / scen, coord, seed, loss, out / f"{name}-{coord}-loss{loss:g}-s{seed}", dict(a.fuzzy))
                 for (name, scen, coord, loss), seed in plan]
-        rows = [fleet_row(r) for r in run_jobs(jobs, eng, desc="chang table")]
+        done: dict[int, dict] = {}
+
+        def keep(i: int, result) -> None:  # what has finished so far, in OUT/chang_table.json (--table-only)
+            done[i] = fleet_row(result)
+            (a.out / "chang_table.json").write_text(json.dumps(_by_key(plan, done), indent=1) + "\n")
+
+        run_jobs(jobs, eng, desc="chang table", on_result=keep)
+        rows = [done[i] for i in range(len(jobs))]
     else:
         rows = [numpy_run(ROOT / scen, coord, seed, loss, dict(a.fuzzy)) for (_, scen, coord, loss), seed in plan]
     for ((name, _, coord, loss), seed), r in zip(plan, rows):
