@@ -5,7 +5,8 @@
 
 Backends:
 - ``fleet`` (default): one ``stack-fleet run SCENARIO --policy fuzzy|fuzzy-lstm --seed S --loss X``
-  process per run (router, pybullet world, one agent per robot, EKF on noisy odometry + fixes,
+  process per run, ``--jobs N`` at a time or on Dask (``--engine dask``, ``stack.fleet.jobs``)
+  (router, pybullet world, one agent per robot, EKF on noisy odometry + fixes,
   lidar noise from the scenario). "No MRC" is ``--policy fuzzy`` on a copy of the scenario with
   ``robot.fuzzy.coordinator: none``.
 - ``numpy``: :mod:`stack.train.fuzzyworld` (exact pose, lidar noise, per-message loss): 100x faster,
@@ -20,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -30,7 +30,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from fleetrun import fleet, scenario_with, setting  # noqa: E402  (bench/, beside this script)
+from fleetrun import engine, report_of, scenario_with, setting  # noqa: E402  (bench/, beside this script)
+
+from stack.fleet.jobs import Job, add_engine_args, cli_task, run_jobs  # noqa: E402
 
 PAPER = {  # (spread, completion) in steps, Tables 2 and 3
     "chang-three": {"flc": (5, 785), "lstm": (8, 778), "none": (504, 901)},
@@ -43,12 +45,19 @@ def _csv(kind):
     return lambda s: [kind(x) for x in s.split(",") if x]
 
 
-def fleet_run(scenario: Path, coord: str, seed: int, loss: float, out: Path, env: dict, fuzzy: dict | None = None) -> dict:
+def fleet_job(scenario: Path, coord: str, seed: int, loss: float, out: Path, fuzzy: dict | None = None) -> Job:
+    """One ``stack-fleet run`` of this coordinator; "no MRC" is ``--policy fuzzy`` on a copy of the scenario with
+    ``robot.fuzzy.coordinator: none``."""
     policy = "fuzzy-lstm" if coord == "lstm" else "fuzzy"
     over = dict(fuzzy or {}) | ({"coordinator": "none"} if coord == "none" else {})
-    # the same scenario, every robot with these robot.fuzzy settings ("no MRC": coordinator none)
-    scenario = scenario_with(scenario, "fuzzy", over, out, coord)
-    rep, err, wall = fleet(scenario, out, "--policy", policy, "--seed", str(seed), "--loss", str(loss), env=env)
+    path = scenario_with(scenario, "fuzzy", over, out, coord)
+    return Job(cli_task, (str(path), str(out), ("--policy", policy, "--seed", str(seed), "--loss", str(loss))),
+               f"{scenario.stem} {coord} loss {loss:g} seed {seed}")
+
+
+def fleet_row(result) -> dict:
+    """A fleet run's row: arrival spread, time to complete, collisions, closest approaches."""
+    rep, err, wall = report_of(result)
     if rep is None:
         return {"error": [err], "wall_s": wall}
     arr = [r.get("arrival_time_s") for r in rep["robots"].values()]
@@ -114,6 +123,15 @@ def table(results: dict, seeds: int, backend: str) -> str:
     return "\n".join(lines)
 
 
+def _by_key(plan: list, rows: dict[int, dict]) -> dict[str, list]:
+    """The rows finished so far (index into ``plan``) under their ``scenario|coordinator|loss`` keys."""
+    out: dict[str, list] = {}
+    for j in sorted(rows):
+        (name, _, coord, loss), seed = plan[j]
+        out.setdefault(f"{name}|{coord}|{loss}", []).append(rows[j] | {"seed": seed})
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--backend", choices=("fleet", "numpy"), default="fleet")
@@ -125,7 +143,9 @@ def main(argv=None) -> int:
     ap.add_argument("--fuzzy", type=setting("--fuzzy", "fuzzy"), action="append", default=[], metavar="KEY=VALUE",
                     help="a robot.fuzzy setting for every run, e.g. terminal_match=false peer_goals=false (ablations)")
     ap.add_argument("--table-only", action="store_true", help="rewrite OUT/chang_table.md from OUT/chang_table.json, run nothing")
+    add_engine_args(ap)  # the fleet backend's runs; the numpy backend runs here, one after another
     a = ap.parse_args(argv)
+    eng = engine(ap, a)
     if a.fuzzy:  # checked as the scenario reader checks robot.fuzzy: one line, exit 2
         from stack.policies.fuzzy import FuzzyConfig
         from stack.settings import SettingError, read
@@ -144,24 +164,27 @@ def main(argv=None) -> int:
         (a.out / "chang_table.md").write_text(md + "\n")
         print(md)
         return 0
-    env = dict(os.environ)
-    results: dict[str, list] = {}
     t0 = time.perf_counter()
-    for scen in a.scenarios:
-        name = Path(scen).stem
-        for coord in a.coordinators:
-            for loss in a.loss:
-                key = f"{name}|{coord}|{loss}"
-                results[key] = []
-                for seed in range(a.seeds):
-                    if a.backend == "fleet":
-                        r = fleet_run(ROOT / scen, coord, seed, loss, a.out / f"{name}-{coord}-loss{loss:g}-s{seed}", env, dict(a.fuzzy))
-                    else:
-                        r = numpy_run(ROOT / scen, coord, seed, loss, dict(a.fuzzy))
-                    r["seed"] = seed
-                    results[key].append(r)
-                    print(f"{key} seed {seed}: {r}", file=sys.stderr, flush=True)
-                (a.out / "chang_table.json").write_text(json.dumps(results, indent=1) + "\n")
+    keys = [(Path(scen).stem, scen, coord, loss) for scen in a.scenarios for coord in a.coordinators for loss in a.loss]
+    results: dict[str, list] = {f"{name}|{coord}|{loss}": [] for name, _, coord, loss in keys}
+    plan = [(k, seed) for k in keys for seed in range(a.seeds)]
+    if a.backend == "fleet":
+        out = a.out.resolve()
+        jobs = [fleet_job(ROOT / scen, coord, seed, loss, out / f"{name}-{coord}-loss{loss:g}-s{seed}", dict(a.fuzzy))
+                for (name, scen, coord, loss), seed in plan]
+        done: dict[int, dict] = {}
+
+        def keep(i: int, result) -> None:  # what has finished so far, in OUT/chang_table.json (--table-only)
+            done[i] = fleet_row(result)
+            (a.out / "chang_table.json").write_text(json.dumps(_by_key(plan, done), indent=1) + "\n")
+
+        run_jobs(jobs, eng, desc="chang table", on_result=keep)
+        rows = [done[i] for i in range(len(jobs))]
+    else:
+        rows = [numpy_run(ROOT / scen, coord, seed, loss, dict(a.fuzzy)) for (_, scen, coord, loss), seed in plan]
+    for ((name, _, coord, loss), seed), r in zip(plan, rows):
+        results[f"{name}|{coord}|{loss}"].append(r | {"seed": seed})
+    (a.out / "chang_table.json").write_text(json.dumps(results, indent=1) + "\n")
     md = table(results, a.seeds, a.backend) + (f"\n\nrobot.fuzzy: {dict(a.fuzzy)}" if a.fuzzy else "") + f"\n\nwall time {time.perf_counter() - t0:.0f} s\n"
     (a.out / "chang_table.md").write_text(md)
     print(md)

@@ -5,7 +5,7 @@
   python bench/drl_fleet.py --drl leader_hold=null --out runs/drl-fleet-eq20          # eq. (20) alone
 
 Each run is one ``stack-fleet run SCENARIO --policy drl --seed K`` process (router, pybullet world, one
-agent per robot). ``--drl KEY=VALUE`` sets a ``robot.drl`` field on a copy of each scenario. Per run:
+agent per robot); ``--jobs N`` of them at a time, or ``--engine dask`` (``stack.fleet.jobs``). ``--drl KEY=VALUE`` sets a ``robot.drl`` field on a copy of each scenario. Per run:
 success, collisions, min / max robot distance (targets: >= 2 R_d, < d_com), min obstacle distance and
 the steps at which the shield overruled the network. Writes OUT/drl_fleet.{md,json}; with ``--figures``
 the seed-0 trajectory and distance plots are copied there as ``bai-drl-<scenario>-*.png``.
@@ -23,7 +23,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from fleetrun import fleet, scenario_with, setting  # noqa: E402  (bench/, beside this script)
+from fleetrun import engine, report_of, scenario_with, setting  # noqa: E402  (bench/, beside this script)
+
+from stack.fleet.jobs import Job, add_engine_args, cli_task, run_jobs  # noqa: E402
 
 SCENARIOS = ["scenarios/four-robot-obstacles.yaml", "scenarios/six-robot.yaml", "scenarios/bai-case2.yaml"]
 
@@ -62,7 +64,9 @@ def main(argv=None) -> int:
     ap.add_argument("--figures", type=Path, default=None, help="copy the seed-0 plots here (bai-drl-<scenario>-*.png)")
     ap.add_argument("--drl", type=setting("--drl", "drl"), action="append", default=[], metavar="KEY=VALUE",
                     help="a robot.drl setting for every run, e.g. shield=false or leader_hold=null")
+    add_engine_args(ap)
     a = ap.parse_args(argv)
+    eng = engine(ap, a)
     if a.seeds < 1:
         ap.error(f"--seeds {a.seeds}: expected at least 1")
     if a.drl:  # checked as the scenario reader checks robot.drl: one line, exit 2
@@ -82,26 +86,25 @@ def main(argv=None) -> int:
         except (OSError, ScenarioError) as e:
             ap.error(f"--scenarios {scen}: {e}")
     a.out.mkdir(parents=True, exist_ok=True)
-    results: dict[str, list] = {}
+    out = a.out.resolve()
+    plan = [(Path(scen).stem, seed, scenario_with(ROOT / scen, "drl", dict(a.drl), out, "drl"))
+            for scen in a.scenarios for seed in range(a.seeds)]
+    jobs = [Job(cli_task, (str(path), str(out / f"{name}-s{seed}"), ("--policy", "drl", "--seed", str(seed)),
+                           a.figures is not None and seed == 0), f"{name} seed {seed}") for name, seed, path in plan]
     t0 = time.perf_counter()
-    for scen in a.scenarios:
-        name = Path(scen).stem
-        results[name] = []
-        for seed in range(a.seeds):
-            out = a.out / f"{name}-s{seed}"
-            path = scenario_with(ROOT / scen, "drl", dict(a.drl), a.out, "drl")
-            rep, err, wall = fleet(path, out, "--policy", "drl", "--seed", str(seed), plots=a.figures is not None and seed == 0)
-            r = {"error": err} if rep is None else summary(rep)
-            r |= {"seed": seed, "wall_s": round(wall, 1)}
-            results[name].append(r)
-            print(f"{name} seed {seed}: {r}", file=sys.stderr, flush=True)
-            if a.figures is not None and seed == 0 and rep is not None:
-                a.figures.mkdir(parents=True, exist_ok=True)
-                for kind in ("trajectories", "distances"):
-                    src = out / f"{kind}.png"
-                    if src.exists():
-                        shutil.copy(src, a.figures / f"bai-drl-{name}-{kind}.png")
-        (a.out / "drl_fleet.json").write_text(json.dumps(results, indent=1) + "\n")
+    results: dict[str, list] = {Path(scen).stem: [] for scen in a.scenarios}
+    for (name, seed, _), res in zip(plan, run_jobs(jobs, eng, desc="drl fleet")):
+        rep, err, wall = report_of(res)
+        r = ({"error": err} if rep is None else summary(rep)) | {"seed": seed, "wall_s": round(wall, 1)}
+        results[name].append(r)
+        print(f"{name} seed {seed}: {r}", file=sys.stderr, flush=True)
+        if a.figures is not None and seed == 0 and rep is not None:
+            a.figures.mkdir(parents=True, exist_ok=True)
+            for kind in ("trajectories", "distances"):
+                src = out / f"{name}-s{seed}" / f"{kind}.png"
+                if src.exists():
+                    shutil.copy(src, a.figures / f"bai-drl-{name}-{kind}.png")
+    (a.out / "drl_fleet.json").write_text(json.dumps(results, indent=1) + "\n")
     md = ("columns: success, collisions, min / max robot distance [m] (bold: >= d_com), min obstacle distance [m]\n\n"
           + table(results, d_com) + (f"\n\nrobot.drl: {dict(a.drl)}" if a.drl else "")
           + f"\n\nwall time {time.perf_counter() - t0:.0f} s\n")

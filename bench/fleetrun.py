@@ -1,13 +1,10 @@
-"""What the fleet benchmarks share: a scenario with per-robot policy settings over it, and one
-``stack-fleet run`` as a process, its report read back."""
+"""What the fleet benchmarks share: a scenario with per-robot policy settings over it, and the runs'
+engine (``stack.fleet.jobs``: ``--jobs N`` here or ``--engine dask``; each run one ``stack-fleet run``
+process, ``stack.fleet.jobs.cli_task``, its report read back)."""
 
 from __future__ import annotations
 
 import argparse
-import json
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import yaml
@@ -28,18 +25,21 @@ def scenario_with(scenario: Path, block: str, over: dict, out: Path, tag: str) -
     return path
 
 
-def fleet(scenario: Path, out: Path, *args: str, env: dict | None = None, plots: bool = False) -> tuple[dict | None, str, float]:
-    """One ``stack-fleet run`` (no progress bar); returns (report or None, its last error line, wall seconds)."""
-    exe = Path(sys.executable).with_name("stack-fleet")
-    cmd = [str(exe), "run", str(scenario), *args, "--out", str(out), "--no-progress", *([] if plots else ["--no-plots"])]
-    t0 = time.perf_counter()
-    p = subprocess.run(cmd, env=env, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    rep_path = out / "report.json"
-    if not rep_path.exists():
-        lines = (p.stderr or p.stdout).strip().splitlines()
-        return None, lines[-1] if lines else f"no report (exit {p.returncode})", wall
-    return json.loads(rep_path.read_text()), "", wall
+def engine(ap: argparse.ArgumentParser, a: argparse.Namespace):
+    """The ``--jobs/--engine/--scheduler`` flags (``stack.fleet.jobs.add_engine_args``) as an engine; bad ones: ap.error."""
+    from stack.fleet.jobs import EngineError, engine_config
+
+    try:
+        return engine_config(a)
+    except EngineError as e:
+        ap.error(str(e))
+
+
+def report_of(result) -> tuple[dict | None, str, float]:
+    """A ``cli_task`` result, or a failed run's (no report, why, 0 s)."""
+    from stack.fleet.jobs import JobFailed
+
+    return (None, result.message, 0.0) if isinstance(result, JobFailed) else result
 
 
 def setting(flag: str, block: str):

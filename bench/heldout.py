@@ -8,8 +8,8 @@ Courses: ``stack.fleet.courses`` with the held-out seeds HELDOUT_START .. HELDOU
 formation and robot count across densities). A policy runs on the courses that list it in
 ``bench.policies``: drl, aina and qlearn everywhere, pid (no obstacle avoidance) on `low` only, where
 the formation's lane is free. Each run is one ``stack-fleet run FILE --policy P --out DIR --no-plots
---no-progress`` process (its own router on a free port, the world, one agent per robot); ``--jobs``
-of them at a time. Writes OUT/heldout.{md,json} (per policy x density: success, collision runs and
+--no-progress`` process (its own router and fleet name, the world, one agent per robot); ``--jobs``
+of them at a time, or ``--engine dask`` (``stack.fleet.jobs``). Writes OUT/heldout.{md,json} (per policy x density: success, collision runs and
 counts, timeouts, time to goal, formation error) and OUT/heldout_success.png.
 """
 
@@ -19,15 +19,15 @@ import argparse
 import json
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from fleetrun import fleet  # noqa: E402  (bench/, beside this script)
+from fleetrun import engine, report_of  # noqa: E402  (bench/, beside this script)
 
 from stack.fleet.courses import DENSITIES, HELDOUT_SEEDS, CourseError, generate_course, write_course  # noqa: E402
+from stack.fleet.jobs import Job, add_engine_args, cli_task, run_jobs  # noqa: E402
 
 POLICIES = ("drl", "aina", "qlearn", "pid")
 COLUMNS = ("policy", "density", "runs", "success", "collision_runs", "robot_robot", "robot_obstacle", "timeouts",
@@ -46,22 +46,30 @@ def outcome(rep: dict | None) -> str:
     return "timeout" if rep.get("leader_time_to_goal_s") is None else "late"
 
 
-def run_one(task: dict, resume: bool) -> dict:
-    """One fleet run of a (course, policy) task; its row."""
-    out = Path(task["out"])
-    rep_path = out / "report.json"
-    if resume and rep_path.exists():
-        rep, err, wall = json.loads(rep_path.read_text()), "", 0.0
-    else:
-        rep, err, wall = fleet(Path(task["file"]), out, "--policy", task["policy"])
+def row(task: dict, rep: dict | None, err: str, wall: float) -> dict:
+    """A (course, policy) task's row from its run's report."""
     col = (rep or {}).get("collisions") or {}
-    row = {k: task[k] for k in ("policy", "density", "seed", "robots", "family")}
-    row |= {"outcome": outcome(rep), "error": err or None, "wall_s": round(wall, 1),
-            "robot_robot": col.get("robot_robot"), "robot_obstacle": col.get("robot_obstacle")}
+    r = {k: task[k] for k in ("policy", "density", "seed", "robots", "family")}
+    r |= {"outcome": outcome(rep), "error": err or None, "wall_s": round(wall, 1),
+          "robot_robot": col.get("robot_robot"), "robot_obstacle": col.get("robot_obstacle")}
     for k in ("leader_time_to_goal_s", "formation_error_rms_m", "min_robot_distance_m", "min_obstacle_distance_m",
               "sim_time_s", "end_reason"):
-        row[k] = (rep or {}).get(k)
-    return row
+        r[k] = (rep or {}).get(k)
+    return r
+
+
+def run_all(tasks: list[dict], eng, resume: bool) -> list[dict]:
+    """Every task's row: ``--resume`` keeps the runs that have a report.json, the others go to the engine."""
+    rows, todo = [], []
+    for t in tasks:
+        rep_path = Path(t["out"]) / "report.json"
+        if resume and rep_path.exists():
+            rows.append(row(t, json.loads(rep_path.read_text()), "", 0.0))
+        else:
+            todo.append(t)
+    jobs = [Job(cli_task, (t["file"], t["out"], ("--policy", t["policy"])), f"{t['policy']} {t['density']} {t['seed']}")
+            for t in todo]
+    return rows + [row(t, *report_of(r)) for t, r in zip(todo, run_jobs(jobs, eng, desc="held-out"))]
 
 
 def plan(courses: int, densities: list[str], policies: list[str], out: Path) -> list[dict]:
@@ -161,32 +169,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--courses", type=int, default=34, help="held-out courses per density (default 34: 102 in all)")
     ap.add_argument("--densities", type=_list(tuple(DENSITIES)), default=list(DENSITIES))
     ap.add_argument("--policies", type=_list(POLICIES), default=list(POLICIES))
-    ap.add_argument("--jobs", type=int, default=1, help="fleet runs at a time (each its own router, world and agents)")
     ap.add_argument("--resume", action="store_true", help="keep the runs that already have a report.json")
     ap.add_argument("--out", type=Path, default=Path("runs/heldout"))
+    add_engine_args(ap)
     a = ap.parse_args(argv)
+    eng = engine(ap, a)
     if not 1 <= a.courses <= len(HELDOUT_SEEDS):
         ap.error(f"--courses {a.courses}: expected 1..{len(HELDOUT_SEEDS)}")
-    if a.jobs < 1:
-        ap.error(f"--jobs {a.jobs}: expected at least 1")
-    from tqdm import tqdm
-
     try:
-        tasks = plan(a.courses, a.densities, a.policies, a.out)
+        tasks = plan(a.courses, a.densities, a.policies, a.out.resolve())
     except CourseError as e:
         print(f"heldout: {e}", file=sys.stderr)
         return 2
-    t0, rows = time.perf_counter(), []
-    with ThreadPoolExecutor(max_workers=a.jobs) as pool, tqdm(total=len(tasks), unit="run", desc="held-out") as bar:
-        for fut in as_completed([pool.submit(run_one, t, a.resume) for t in tasks]):
-            rows.append(fut.result())
-            bar.set_postfix_str(f"{rows[-1]['policy']} {rows[-1]['density']} {rows[-1]['seed']}: {rows[-1]['outcome']}")
-            bar.update(1)
+    t0 = time.perf_counter()
+    rows = run_all(tasks, eng, a.resume)
     rows.sort(key=lambda r: (a.policies.index(r["policy"]), a.densities.index(r["density"]), r["seed"]))
     table = aggregate(rows, a.policies, a.densities)
     command = "python bench/heldout.py " + " ".join(argv if argv is not None else sys.argv[1:])
     seeds = HELDOUT_SEEDS[: a.courses]
-    md = markdown(table, seeds, command) + f"wall time {time.perf_counter() - t0:.0f} s, {a.jobs} job(s)\n"
+    md = markdown(table, seeds, command) + f"wall time {time.perf_counter() - t0:.0f} s, {eng.jobs} job(s), engine {eng.engine}\n"
     a.out.mkdir(parents=True, exist_ok=True)
     (a.out / "heldout.md").write_text(md)
     (a.out / "heldout.json").write_text(json.dumps({"seeds": [seeds.start, seeds.stop - 1], "densities": a.densities,

@@ -195,7 +195,7 @@ def test_random_scenarios_and_bench_random(tmp_path, monkeypatch):
     with pytest.raises(CourseError, match="held out"):
         random_scenarios(2, first_seed=HELDOUT_START - 1)
     seen = {}
-    monkeypatch.setattr(bench, "main", lambda folder, out, seed=None, policies=None: seen.update(
+    monkeypatch.setattr(bench, "main", lambda folder, out, seed=None, policies=None, engine=None: seen.update(
         files=sorted(p.name for p in Path(folder).glob("*.yaml")), policies=policies) or 0)
     (tmp_path / "courses").mkdir()
     (tmp_path / "courses" / "stale.yaml").write_text("old")

@@ -1,3 +1,4 @@
 from .cli import main
 
-main()
+if __name__ == "__main__":  # not again in a Dask or multiprocessing child that imports it
+    main()

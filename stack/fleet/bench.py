@@ -1,7 +1,7 @@
 """``stack-fleet bench``: every scenario under a folder x every implemented policy it is meant for.
 
-One lock-step run each (the scenario's seed, or ``--seed``); one table in markdown and
-JSON beside the runs, with the paper's reference figure of each scenario in the last column.
+One lock-step run each (the scenario's seed, or ``--seed``; ``--jobs N`` at a time, or on Dask: :mod:`.jobs`);
+one table in markdown and JSON beside the runs, with the paper's reference figure of each scenario in the last column.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 
 from ..policies import available
 from ..scenario import POLICIES, ScenarioError, load_scenario, with_overrides
-from .orchestrator import FleetConfig, run_fleet
+from .jobs import EngineConfig, Job, JobFailed, failed_fleet, fleet_task, run_jobs
 
 COLUMNS = ("scenario", "policy", "success", "sim_time_s", "leader_time_to_goal_s", "collisions", "min_robot_distance_m",
            "max_robot_distance_m", "min_obstacle_distance_m", "formation_error_rms_m", "connectivity", "convergence_s",
@@ -55,8 +55,10 @@ def convergence_cell(rep: dict) -> str | None:
     return "; ".join(cells) or None
 
 
-def main(folder: Path, out: Path, seed: int | None = None, policies: list[str] | None = None) -> int:
-    """The bench over ``folder``; ``policies``: these instead of each scenario's ``bench.policies``."""
+def main(folder: Path, out: Path, seed: int | None = None, policies: list[str] | None = None,
+         engine: EngineConfig = EngineConfig()) -> int:
+    """The bench over ``folder``; ``policies``: these instead of each scenario's ``bench.policies``;
+    ``engine``: where the runs go (:mod:`.jobs`)."""
     try:
         plan, skipped = _plan(folder, policies)
     except ScenarioError as e:
@@ -64,11 +66,11 @@ def main(folder: Path, out: Path, seed: int | None = None, policies: list[str] |
         return 2
     out.mkdir(parents=True, exist_ok=True)
     rows = []
-    for n, (sc, pol) in enumerate(plan, 1):
-        run = with_overrides(sc, policy=pol, seed=seed)
+    jobs = [Job(fleet_task, (with_overrides(sc, policy=pol, seed=seed), (out / f"{sc.name}-{pol}").resolve(), True),
+                f"{sc.name} with {pol}") for sc, pol in plan]
+    for (sc, pol), res in zip(plan, run_jobs(jobs, engine, desc="bench")):
         dest = out / f"{sc.name}-{pol}"
-        print(f"[{n}/{len(plan)}] {sc.name} with {pol} ...", file=sys.stderr, flush=True)
-        code, rep = run_fleet(FleetConfig(scenario=run, out=dest, progress=sys.stderr.isatty()))
+        code, rep = failed_fleet(res.message) if isinstance(res, JobFailed) else res
         row = {c: rep.get(c) for c in COLUMNS} | {"policy": pol, "exit": code, "reference": sc.bench.reference,
                                                  "report": str(dest / "report.json"),
                                                  "convergence_s": convergence_cell(rep)}
@@ -89,7 +91,8 @@ def main(folder: Path, out: Path, seed: int | None = None, policies: list[str] |
 
 
 def random_bench(n: int, out: Path, *, first_seed: int = 0, robots: int | None = None, formation: str | None = None,
-                 density: str | None = None, policies: list[str] | None = None, seed: int | None = None) -> int:
+                 density: str | None = None, policies: list[str] | None = None, seed: int | None = None,
+                 engine: EngineConfig = EngineConfig()) -> int:
     """``stack-fleet bench --random N``: the generated courses of seeds first_seed .. first_seed + N - 1
     (``stack.fleet.courses``; never the held-out seeds), written to OUT/courses/, then the bench over them."""
     from .courses import CourseError, random_scenarios, write_course
@@ -109,7 +112,7 @@ def random_bench(n: int, out: Path, *, first_seed: int = 0, robots: int | None =
         old.unlink()
     for c in courses:
         write_course(c, folder / f"{c.scenario['name']}.yaml")
-    return main(folder, out, seed=seed, policies=policies)
+    return main(folder, out, seed=seed, policies=policies, engine=engine)
 
 
 # --- sweeps (issue 9): one comm parameter over values x seeds, per scenario and policy ------------
@@ -140,7 +143,7 @@ def parse_sweep(text: str) -> tuple[str, list[float]]:
 
 
 def sweep(folder: Path, out: Path, param: str, values: list[float], *, seeds: int = 3,
-          policies: list[str] | None = None, duration: float | None = None) -> int:
+          policies: list[str] | None = None, duration: float | None = None, engine: EngineConfig = EngineConfig()) -> int:
     """Every scenario under ``folder`` x its implemented policies (or ``policies``) x ``values`` x
     ``seeds`` (seeds 0..seeds-1): one table (markdown + JSON) and one plot, ``<param>_sweep.png``."""
     try:
@@ -149,24 +152,16 @@ def sweep(folder: Path, out: Path, param: str, values: list[float], *, seeds: in
         print(f"stack-fleet bench: {e}", file=sys.stderr)
         return 2
     out.mkdir(parents=True, exist_ok=True)
-    from tqdm import tqdm
-
-    rows = []
-    crashed_any = False
-    total = len(plan) * len(values) * seeds
-    bar = tqdm(total=total, unit="run", desc=f"{param} sweep", file=sys.stderr, disable=not sys.stderr.isatty())
-    for sc, pol in plan:
-        for value in values:
-            reps = []
-            for seed in range(seeds):
-                run = with_overrides(sc, policy=pol, seed=seed, duration=duration, **{SWEEPS[param]: value})
-                dest = out / f"{sc.name}-{pol}-{param}{value:g}-s{seed}"
-                code, rep = run_fleet(FleetConfig(scenario=run, out=dest, progress=False, plots=False))
-                reps.append(rep | {"_exit": code})
-                crashed_any = crashed_any or code == 3
-                bar.update(1)
-            rows.append(_aggregate(sc.name, pol, value, reps))
-    bar.close()
+    cells = [(sc, pol, value) for sc, pol in plan for value in values]
+    jobs = [Job(fleet_task, (with_overrides(sc, policy=pol, seed=s, duration=duration, **{SWEEPS[param]: value}),
+                             (out / f"{sc.name}-{pol}-{param}{value:g}-s{s}").resolve()),
+                f"{sc.name}/{pol} {param}={value:g} seed {s}")
+            for sc, pol, value in cells for s in range(seeds)]
+    results = [failed_fleet(r.message) if isinstance(r, JobFailed) else r
+               for r in run_jobs(jobs, engine, desc=f"{param} sweep")]
+    crashed_any = any(code == 3 for code, _ in results)
+    rows = [_aggregate(sc.name, pol, value, [rep | {"_exit": code} for code, rep in results[k * seeds:(k + 1) * seeds]])
+            for k, (sc, pol, value) in enumerate(cells)]
     lines = ["| " + " | ".join(SWEEP_COLUMNS) + " |", "|" + " --- |" * len(SWEEP_COLUMNS)]
     lines += ["| " + " | ".join(_cell(r[c]) for c in SWEEP_COLUMNS) + " |" for r in rows]
     table = "\n".join(lines)

@@ -113,6 +113,9 @@ def parser() -> argparse.ArgumentParser:
     b.add_argument("--robots", type=positive_int, help="--random: robots per course (default: drawn, 3..8)")
     b.add_argument("--formation", help="--random: formation family (default: drawn)")
     b.add_argument("--density", help="--random: obstacle density low|medium|high (default: drawn)")
+    from .jobs import add_engine_args
+
+    add_engine_args(b)
     return ap
 
 
@@ -207,14 +210,20 @@ def cli(argv: list[str] | None = None) -> int:
                             "--width", str(a.width)])
     if a.cmd == "bench":
         from .bench import main as bench_main
+        from .jobs import EngineError, engine_config
 
+        try:
+            engine = engine_config(a)
+        except EngineError as e:
+            print(f"stack-fleet: {e}", file=sys.stderr)
+            return EXIT_BAD_INPUT
         sigterm_as_interrupt()
         try:
             if a.random is not None:
                 from .bench import random_bench
 
                 return random_bench(a.random, a.out, first_seed=a.first_seed, robots=a.robots, formation=a.formation,
-                                    density=a.density, policies=a.policies, seed=a.seed)
+                                    density=a.density, policies=a.policies, seed=a.seed, engine=engine)
             if a.sweep is not None:
                 from .bench import sweep
 
@@ -224,8 +233,8 @@ def cli(argv: list[str] | None = None) -> int:
                           file=sys.stderr)
                     return EXIT_BAD_INPUT
                 return sweep(a.scenarios, a.out, a.sweep[0], a.sweep[1], seeds=a.seeds, policies=a.policies,
-                             duration=a.duration)
-            return bench_main(a.scenarios, a.out, seed=a.seed)
+                             duration=a.duration, engine=engine)
+            return bench_main(a.scenarios, a.out, seed=a.seed, engine=engine)
         except KeyboardInterrupt:
             print("stack-fleet: interrupted; every process was stopped", file=sys.stderr)
             return 130
