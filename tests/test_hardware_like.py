@@ -107,9 +107,8 @@ def test_rovers_that_booted_in_different_places_hold_their_formation_in_the_site
 @pytest.mark.parametrize("driver", ["sim"])
 def test_a_restarted_agent_on_a_device_that_booted_elsewhere_knows_where_it_is(tmp_path, driver):
     """Odometry from boot (the world's own base with ``ideal: false``): a restarted agent's first sample is wherever
-    the robot has driven to in its odom frame; ``boot`` maps it from the start pose. (Not yet on hosted devices: a
-    lock-step restart of a device-driven agent waits for odometry the device sends only when the world steps, while
-    the world waits for the agent; ideal devices alike.)"""
+    the robot has driven to in its odom frame; ``boot`` maps it from the start pose. (Hosted devices:
+    ``test_hil_fleet.py::test_restarted_agents_on_simulated_devices_rejoin_in_lock_step``.)"""
     d = scenario_dict(duration=40.0, success={"goal_tolerance": 0.5, "max_time": 40.0, "no_collisions": True})
     d["robot"] |= {"odom_noise": {"v_std": 0.02, "w_std": 0.02}, "device": {"ideal": False}}
     for r in d["robots"]:

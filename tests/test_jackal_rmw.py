@@ -261,12 +261,9 @@ def test_a_jackal_fleet_on_rmw_zenoh_matches_the_bridge(tmp_path):
         assert all(r["driver_fault"] is None for r in rep["robots"].values())
         reports[transport] = rep
     a, b = reports["bridge"], reports["rmw_zenoh"]
-    assert a["late_steps"] == 0 == b["late_steps"]
-    # The bridge fleet itself is not bit-for-bit repeatable: three runs gave a formation error of 0.5423-0.5426 m
-    # and a minimum distance of 2.4564-2.4657 m (cause not chased). The tolerances: one step of the leader's
-    # time, and several times that spread.
-    # device fleets repeat to centimetres, not to the bit (measured 0.53 against 0.58 m once; issue 16 open)
-    assert b["leader_time_to_goal_s"] == pytest.approx(a["leader_time_to_goal_s"], abs=1.0)
-    assert b["formation_error_rms_m"] == pytest.approx(a["formation_error_rms_m"], abs=0.1)
-    assert b["min_robot_distance_m"] == pytest.approx(a["min_robot_distance_m"], abs=0.2)
+    assert a["late_steps"] == 0 == b["late_steps"]  # no wall-clock bound expired: both are the lock-step run
     assert b["collisions"] == a["collisions"] == {"robot_robot": 0, "robot_obstacle": 0}
+    # The same CDR on both transports and lock-step device fleets repeat to the bit (issue 16: a cmd_vel that
+    # reached the device after the agent's answer once made three bridge runs differ by 0.3 mm): the same run.
+    wall = ("wall_time_s", "steps_per_s", "control_loop_ms", "state_latency_ms")
+    assert {k: v for k, v in b.items() if k not in wall} == {k: v for k, v in a.items() if k not in wall}

@@ -372,6 +372,8 @@ class Agent:
                 return None
             # the driver's clock moves to step k only now that all of step k's device traffic is in (heartbeats go
             # before the odometry on each wire): whatever the wall clock did, the driver stamped it t_{k-1}
+            if self.step < 0 and clock.t > self.sim_now:  # a restart: the driver opened at 0, the world is at t
+                self.driver.clock_jumped(clock.t - self.sim_now)
             self.sim_now = max(self.sim_now, clock.t)
             odometry = self._take_odometry(k, clock.t, n_device)
             fixes = tuple((f.x, f.y, f.std) for f in self._in.fixes if f.step <= k)
@@ -507,7 +509,8 @@ class Agent:
         self.sent += 1
         self.driver.command(out.v, out.w, step=k)
         if self.cfg.lockstep and not self.driver.answers_steps:  # the command went over the device's wire
-            self._answer_pub.put(encode(Answer(id=self.id, step=k, stamp=self._stamp())))
+            self._answer_pub.put(encode(Answer(id=self.id, step=k, stamp=self._stamp(), wire=self.driver.wire_sent,
+                                               sync=first)))
         if self.view is not None:  # after the answer: the world's step waits for nothing of it
             self.view.on_step(self.pipeline, inp, out, self.driver.last_sent)
         self.hist.add((time.perf_counter() - self._in.sensor_perf) * 1000.0)

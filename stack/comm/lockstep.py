@@ -3,7 +3,8 @@ agent's wait for step k's inputs.
 
 A lock-step run is the special case in which the world's clock drives everything: per step k the world
 publishes ``world/clock`` (k, t, who answered k-1, who is dead, how many odometry samples each hosted device
-has sent), the sensors of step k, then waits (``CommandBarrier``) until every live agent has commanded step k.
+has sent), the sensors of step k, then waits (``CommandBarrier``) until every live agent has commanded step k
+and (``DeviceWires``) until each hosted device has those commands.
 An agent (``StepBarrier``) waits until step k's inputs are all in, then for the states that the robots which
 answered k-1 sent before their command, so that every agent computes step k from the same messages, whatever
 the wall clock does.
@@ -15,10 +16,15 @@ of k-1 and k are exactly step k's; the agent waits for ``device_odom[k] - device
 by ``device_wait_s``: a sample lost on the wire is counted in ``device_late``, never a stall). Samples beyond
 that count (sent before lock-step began, or left in a device's buffer by a killed agent) precede the step's
 own on the same wire: the newest ``n`` are the step's, the older ones are dropped and counted as ``strays``.
-An agent's first step (a fresh start or a restart) is a sync step: it takes no device sample (all before it
-are strays) and so commands zero; the world sends no device telemetry before step 1. What remains is a sample
-sent before lock-step began that is still on its wire after the agent's whole first step: it would count for
-step 1 (and the next step's count then drops it).
+An agent's first step (a fresh start or a restart) is a sync step: it takes no device sample (it drops all
+before it, uncounted: how many there are says how long the device ran on the wall clock) and so commands zero;
+the world sends no device telemetry before step 1. What remains is a sample sent before lock-step began that is
+still on its wire after the agent's whole first step: it would count for step 1 (and the next step's count
+then drops it).
+
+The other way, a device agent's command of step k goes over the device's wire and its answer over zenoh, in no
+order between them: the answer counts the messages its driver has put on that wire, and the world takes the
+device's commands until the device has handled as many (``DeviceWires``).
 
 Wall time enters only as the bounds of these waits (a stalled or lost peer); a run in which no bound
 expires is the same run every time.
@@ -29,7 +35,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Callable, Iterable
+from typing import Any, Callable, Iterable, Mapping
 
 from .messages import Clock
 
@@ -49,15 +55,20 @@ class CommandBarrier:
         self._live = live
         self.timeout_s = timeout_s
         self.cmds: dict[int, dict[int, tuple[float, float] | None]] = {}  # step -> id -> (v, w) (None: on a device's wire)
+        self.wires: dict[int, dict[int, tuple[int, bool]]] = {}  # step -> id -> (messages on its device's wire, sync)
         self.unresponsive: set[int] = set()
         self.step = 0  # the step being waited for
 
-    def answered(self, rid: int, step: int, cmd: tuple[float, float] | None) -> None:
-        """Robot ``rid`` has commanded ``step`` (caller holds the condition)."""
+    def answered(self, rid: int, step: int, cmd: tuple[float, float] | None,
+                 wire: tuple[int, bool] | None = None) -> None:
+        """Robot ``rid`` has commanded ``step`` (caller holds the condition); ``wire``: a device's driver's
+        (``Answer.wire``, ``Answer.sync``), for ``DeviceWires``."""
         if step < 0:
             return
         got = self.cmds.setdefault(step, {})
         got[rid] = cmd
+        if wire is not None:
+            self.wires.setdefault(step, {})[rid] = wire
         self.unresponsive.discard(rid)
         if step == self.step and len(got) >= len(self._live() - self.unresponsive):
             self._cv.notify_all()  # wake the world once the step may be complete
@@ -88,6 +99,67 @@ class CommandBarrier:
         for old in [s for s in self.cmds if s < k]:
             del self.cmds[old]
         return got
+
+    def take_wires(self, k: int) -> dict[int, tuple[int, bool]]:
+        """Step ``k``'s device wire counts (caller holds the condition); older steps' are forgotten."""
+        got = self.wires.pop(k, {})
+        for old in [s for s in self.wires if s < k]:
+            del self.wires[old]
+        return got
+
+
+class DeviceWires:
+    """World side, the hosted devices' half of step k's commands: each device handles every message its driver
+    had put on its wire when the agent answered k, before the world moves the body.
+
+    The answer and the command travel on different wires (zenoh for the answer; a pty, a UDP socket or another
+    zenoh key for the command), and no order holds between them: each zenoh subscriber runs its callbacks on its
+    own thread (zenoh-python's default), so a bridged Jackal's ``cmd_vel`` can reach the device after the answer
+    reached the world (seen: taken a step late). So the answer says how many messages the driver has put on the wire (``Driver.wire_sent``) and the world
+    takes the device's commands (``take_commands``, at the step's time: handling them in one go or in parts is
+    the same) until the device has handled that many (``wire_received``). A driver sends messages after its
+    answer too (keep-alives on the wall clock): they repeat its last command, so the step they land in changes
+    nothing the device does.
+
+    Counts run from the device's start: the first driver to answer is the only one that wrote to it. An agent
+    that starts again answers its first step with ``sync`` and a new driver's count: the count is rebased on what
+    the device has handled by then (the new driver's opening messages came long before; the first command of a
+    sync step is zero).
+    """
+
+    def __init__(self, timeout_s: float):
+        self.timeout_s = timeout_s
+        self._base: dict[int, int] = {}  # robot -> the device's count when its driver's count began
+        self.late = 0  # device-steps that went on without every message of the answer
+
+    def deliver(self, devices: Mapping[int, Any], wires: Mapping[int, tuple[int, bool]], t: float,
+                stop: threading.Event) -> list[int]:
+        """Every device takes its commands at ``t`` until it has the messages its driver's answer of the step
+        counts (bounded by ``timeout_s`` wall: a message lost on its wire is a late step, never a stall);
+        returns the robots whose wire fell short."""
+        need = {}
+        for rid, dev in devices.items():
+            dev.take_commands(t)
+            if rid in wires:
+                need[rid] = self._needed(rid, dev, *wires[rid])
+        deadline = time.monotonic() + self.timeout_s
+        short = [rid for rid, n in need.items() if devices[rid].wire_received < n]
+        while short and not stop.is_set() and time.monotonic() < deadline:
+            time.sleep(0.0002)
+            for rid in short:
+                devices[rid].take_commands(t)
+            short = [rid for rid in short if devices[rid].wire_received < need[rid]]
+        if short:
+            self.late += len(short)
+            log.warning("world: t=%.2f s: robots %s: not every message of their answer reached the device within "
+                        "%.1f s; going on", t, short, self.timeout_s)
+        return short
+
+    def _needed(self, rid: int, dev: Any, wire: int, sync: bool) -> int:
+        if sync and rid in self._base:  # a new driver (the agent started again): its count starts here
+            self._base[rid] = max(0, dev.wire_received - wire)
+        base = self._base.setdefault(rid, 0)
+        return base + wire
 
 
 class StepBarrier:
@@ -155,8 +227,8 @@ class StepBarrier:
         else:
             return None
         need = self._device_count(clock)
-        if need is not None and pending() > need:
-            self.strays += pending() - need
+        if need is not None and pending() > need and self._sent_before is not None:
+            self.strays += pending() - need  # (a sync step's are the device's history: how long it ran before us)
         self._sent_before = clock.device_odom.get(self.id)
         return clock, need
 
@@ -193,4 +265,4 @@ class StepBarrier:
         return True
 
 
-__all__ = ["CommandBarrier", "StepBarrier"]
+__all__ = ["CommandBarrier", "DeviceWires", "StepBarrier"]

@@ -68,6 +68,8 @@ class Answer(_Msg):
     id: int
     step: int
     stamp: Finite
+    wire: int | None = None  # messages the driver has put on the device's wire so far (None: not counted)
+    sync: bool = False  # the agent's first step (a fresh start or a restart: a new driver, its count from 0)
 
 
 class Odom(_Msg):

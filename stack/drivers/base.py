@@ -81,6 +81,10 @@ class Periodic:
     def due(self, now: float, wall: float) -> bool:
         return now >= self._next or wall >= self._next_wall
 
+    def shift(self, dt: float) -> None:
+        """The driver's clock jumped by ``dt`` (``Driver.clock_jumped``): the next one is due as late on it."""
+        self._next += dt
+
     def done(self, now: float, wall: float) -> None:
         """It was sent at ``now`` (driver's clock) / ``wall``: the next one is due a period later on both."""
         self._next = now + self.period
@@ -288,6 +292,18 @@ class Driver(ABC):
             if reason:
                 self._trip(reason)
 
+    def clock_jumped(self, dt: float) -> None:
+        """The driver's clock jumped ahead by ``dt`` (a lock-step agent opened its driver at 0 and learns the
+        world's time at its first step): every sign of life, the last command and the keep-alives move with it,
+        so what the device said while opening is as old as it was, not ``dt`` older."""
+        with self._books:
+            self._seen = {s: t + dt for s, t in self._seen.items()}
+        with self._lock:
+            if self._last_cmd_time is not None:
+                self._last_cmd_time += dt
+            for _, p in self._feeds:
+                p.shift(dt)
+
     # --- counters and liveness ---------------------------------------------------------
     def count(self, name: str, malformed: bool = False) -> None:
         """``counters[name] += 1``; a malformed one is also told to ``on_malformed`` as ``<driver>/<name>``."""
@@ -295,6 +311,14 @@ class Driver(ABC):
             self.counters[name] = self.counters.get(name, 0) + 1
         if malformed:
             self._on_malformed(f"{self.name}/{name}")
+
+    @property
+    def wire_sent(self) -> int:
+        """Messages this driver has put on its device's wire (every frame, datagram or sample: each backend counts
+        ``tx`` once one is on the wire). A lock-step world waits until the device has handled as many as the
+        driver had sent when it answered a step (``stack.comm.lockstep.DeviceWires``)."""
+        with self._books:
+            return self.counters.get("tx", 0)
 
     @property
     def watchdog_trips(self) -> int:

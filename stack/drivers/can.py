@@ -223,7 +223,7 @@ class CanDriver(Driver):
             return a.heartbeats > seen[a.node_id] and a.state == odrive.AxisState.CLOSED_LOOP_CONTROL and a.error == 0
 
         with self._state:
-            if not self._state.wait_for(lambda: all(ready(a) for a in self._axes.values()), cfg.open_timeout):
+            if not self._wait_fed(lambda: all(ready(a) for a in self._axes.values()), cfg.open_timeout):
                 why = "; ".join(f"{a.label}: " + (a.status() if a.heartbeats > seen[a.node_id] else "no heartbeat")
                                 for a in self._axes.values() if not ready(a))
                 raise DriverError(f"can driver {self.robot_id}: axes not in CLOSED_LOOP_CONTROL after "
@@ -231,6 +231,18 @@ class CanDriver(Driver):
             now = self._clock()
             for a in self._axes.values():  # the heartbeat timeout counts from here
                 self._alive(a.stream, now)
+
+    def _wait_fed(self, pred: Callable[[], bool], timeout: float) -> bool:
+        """Wait (holding ``_state``) until ``pred``; every ``keepalive_period`` meanwhile a Get_Error request to each
+        axis feeds its watchdog, armed since Set_Axis_State (a slow confirmation must not trip it: the keep-alive
+        starts only once the driver is open), and its reply says what an axis that stays out of closed loop has."""
+        deadline = time.monotonic() + timeout
+        while not self._state.wait_for(pred, min(self.config.keepalive_period, max(0.0, deadline - time.monotonic()))):
+            if time.monotonic() >= deadline:
+                return False
+            for node in self._axes:
+                self._tx(odrive.request("Get_Error", node))
+        return True
 
     def _close(self) -> None:
         self._stop_supervisor()

@@ -14,10 +14,15 @@ Lifecycle, driven by the world (``WorldServer``):
    UDP port, the Zenoh keys) and the device runs on the wall clock, so the agents' drivers
    can open it (handshakes, arming) while the world waits for their liveliness tokens.
 2. ``lockstep(t_sim)`` when lock-step stepping begins (not called in real time): the
-   device stops its wall-clock thread; from here its time is its own start offset plus the
-   sim time (monotonic across the handover).
+   device stops its wall-clock thread; from here its time is ``LOCKSTEP_EPOCH`` plus the sim
+   time, the same numbers in every run (monotonic across the handover: the wall-clock phase is
+   shorter), and every timer it holds (heartbeat and sample schedules, watchdogs, target and
+   failsafe ages) starts again at the handover (``_restart_timers``): nothing the wall-clock
+   phase did (how long it lasted, at which phase its ticks fell) shows in a lock-step run.
 3. Each step k (lock-step and real time alike), after the step's commands are in:
-   ``take_commands(t_k)`` handles what the driver sent so far; ``motion(t_k + dt)`` advances
+   ``take_commands(t_k)`` handles what the driver sent so far (lock-step: the world calls it
+   until ``wire_received`` counts every message the driver had put on the wire when it
+   answered step k, ``stack.comm.lockstep.DeviceWires``); ``motion(t_k + dt)`` advances
    the device's actuators to the end of the step and returns the body speeds (v, w) the
    world moves the body with over the step; the world steps; ``report(t_k + dt, body)``
    gives the device the body's pose and speeds at the end of the step and sends whatever
@@ -27,7 +32,10 @@ Lifecycle, driven by the world (``WorldServer``):
    were, so an agent knows when it has step k's (``stack.comm.lockstep``; device wires carry no step).
    In real time the device's own thread keeps handling traffic as it arrives, and these
    calls only sync the body.
-4. ``close()``: the device is gone (the endpoint disappears).
+4. ``serve(t)`` while a lock-step world stands still at ``t`` (a restarted agent opening its driver, the
+   agents leaving after the run): the device handles what its driver sends (a rover ACKs GUIDED, arming,
+   HOLD), repeats its status (heartbeats, odometry standing still), and no time passes.
+5. ``close()``: the device is gone (the endpoint disappears).
 
 Each device has a typed config (``config_class``, a ``DeviceConfig``): how real the device is.
 ``ideal: false`` (the default) does what real hardware does (the device's own frames, rates,
@@ -52,6 +60,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
+
+LOCKSTEP_EPOCH = 65536.0
+"""[s] a device's time when lock-step begins (sim time 0): a constant, so device times (and every sum and difference
+of them) are the same floating-point numbers in every run; a power of two, 18 h, longer than any wall-clock phase."""
+
+SERVE_STATUS_S = 0.05
+"""[s] (wall) how often a device standing still in lock-step (``serve``) repeats its status: a heartbeat's period."""
 
 SIM_OPEN_TIMEOUT_S = 10.0
 """[s] at least this long for a driver to open its simulated device: the whole fleet (router, world with
@@ -142,6 +157,8 @@ class HostedDevice(ABC):
         self._wall0 = time.monotonic()
         self._offset: float | None = None  # device time = offset + sim time, once in lock-step
         self.odom_sent = 0  # odometry samples sent, as the driver assembles them (the lock-step clock counts them)
+        self.wire_received = 0  # messages from the driver handled (as its driver counts them: ``Driver.wire_sent``)
+        self._status_due = 0.0  # monotonic time of the next status message while served (``serve``)
 
     def _device_config(self, settings) -> DeviceConfig:
         if isinstance(settings, self.config_class):
@@ -179,9 +196,16 @@ class HostedDevice(ABC):
         return self._offset is not None
 
     def lockstep(self, t_sim: float) -> None:
-        """From now on the world's sim time drives the device (stops the wall-clock thread)."""
+        """From now on the world's sim time drives the device (stops the wall-clock thread); its device time is
+        ``LOCKSTEP_EPOCH`` + sim time and its timers start again there."""
         self._stop_realtime()
-        self._offset = self.wall_time() - t_sim
+        wall = self.wall_time()
+        epoch = LOCKSTEP_EPOCH * math.ceil((wall + 1.0) / LOCKSTEP_EPOCH)  # LOCKSTEP_EPOCH unless up for 18 h
+        self._offset = epoch - t_sim
+        self._restart_timers(self.device_time(t_sim))
+
+    def _restart_timers(self, t_dev: float) -> None:
+        """Every timer of the device restarts at device time ``t_dev`` (the lock-step handover). Default: none."""
 
     # --- what the world calls -------------------------------------------------------------
     @abstractmethod
@@ -208,6 +232,20 @@ class HostedDevice(ABC):
     @abstractmethod
     def report(self, t_sim_next: float, body: Body) -> None:
         """The body as the world moved it at ``t_sim_next``; send the telemetry due by then."""
+
+    def serve(self, t_sim: float) -> None:
+        """The world is not stepping (lock-step: waiting for agents to leave, or for a restarted one to open its
+        driver) and stands at ``t_sim``: handle what came over the wire (replies go out at once) and, every
+        ``SERVE_STATUS_S`` of wall time, the status a driver opening waits for (``_send_status``: heartbeats,
+        odometry of the body standing where it is); no time passes for the device."""
+        self.take_commands(t_sim)
+        now = time.monotonic()
+        if now >= self._status_due:
+            self._status_due = now + SERVE_STATUS_S
+            self._send_status(t_sim)
+
+    def _send_status(self, t_sim: float) -> None:
+        """What a driver opening waits for, sent while the world stands at ``t_sim`` (``serve``). Default: nothing."""
 
     def publish_scan(self, t_sim: float, angle_min: float, angle_increment: float, range_max: float,
                      ranges) -> None:
@@ -248,5 +286,5 @@ def make_device(driver: str, robot, **kw) -> HostedDevice:
     return device_class(driver)(robot, **kw)
 
 
-__all__ = ["Body", "DeviceConfig", "DeviceError", "HostedDevice", "check_choice", "check_number",
+__all__ = ["LOCKSTEP_EPOCH", "Body", "DeviceConfig", "DeviceError", "HostedDevice", "check_choice", "check_number",
            "device_class", "hosted", "make_device"]

@@ -81,6 +81,14 @@ class OdriveDevice(HostedDevice):
     def take_commands(self, t_sim: float) -> None:
         if self.in_lockstep:
             self.pair.receive(self.device_time(t_sim))
+        self.wire_received = self.adapter.counters.get("frames", 0)  # every frame the host sent, now handled
+
+    def _restart_timers(self, t_dev: float) -> None:
+        self.pair.restart_timers(t_dev)
+
+    def _send_status(self, t_sim: float) -> None:
+        """Both axes' heartbeats (what a driver opening waits for: closed loop, no error)."""
+        self.pair.send(self.pair.heartbeats())
 
     def motion(self, t_sim_next: float) -> tuple[float, float]:
         if self.in_lockstep:

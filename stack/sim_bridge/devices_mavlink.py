@@ -91,6 +91,14 @@ class RoverDevice(HostedDevice):
     def take_commands(self, t_sim: float) -> None:
         if self.in_lockstep:
             self.rover.receive(self.device_time(t_sim))
+        self.wire_received = self.rover.counters.get("rx", 0)  # every message the driver sent, now handled
+
+    def _restart_timers(self, t_dev: float) -> None:
+        self.rover.restart_timers(t_dev)
+
+    def _send_status(self, t_sim: float) -> None:
+        """The rover's heartbeat (a driver opening waits for it, then for GUIDED and armed in it)."""
+        self.rover.heartbeat()
 
     def motion(self, t_sim_next: float) -> tuple[float, float]:
         if self.in_lockstep:

@@ -354,6 +354,18 @@ class JackalDevice(HostedDevice):
         if self.hardware is not None:
             self.hardware.reseed()
 
+    def _send_status(self, t_sim: float) -> None:
+        """Odometry of the body standing where it is (a driver opening waits for the first one)."""
+        if self.hardware is None:
+            self._publish_odom(self.device_time(t_sim), replace(self.body, v=0.0, w=0.0))
+        elif self.hardware.pose is not None:
+            self.publish_odom(self.host_clock(t_sim, self.hardware.cfg.clock_offset_s), *self.hardware.pose, 0.0, 0.0)
+
+    def _restart_timers(self, t_dev: float) -> None:
+        """The cmd_vel timeout counts from the handover (a target it holds is as old as that)."""
+        if self.target_time is not None:
+            self.target_time = t_dev
+
     def _stop_realtime(self) -> None:
         self._halt.set()
         if self._thread is not None and self._thread is not threading.current_thread():
@@ -384,6 +396,8 @@ class JackalDevice(HostedDevice):
         """Zenoh thread (either transport): queue the payload; on the wall clock the arrival is its device time."""
         arrived = None if self.in_lockstep else self.wall_time()
         with self._lock:
+            if len(self._pending) == self._pending.maxlen:
+                self.wire_received += 1  # the oldest is dropped unread: handled, as far as the count goes
             self._pending.append((payload, arrived))
 
     def take_commands(self, t_sim: float) -> None:
@@ -393,6 +407,7 @@ class JackalDevice(HostedDevice):
         with self._lock:
             items = list(self._pending)
             self._pending.clear()
+            self.wire_received += len(items)
         for data, arrived in items:
             try:
                 v, w = decode_twist(data)

@@ -56,6 +56,9 @@ import can
 from ..drivers import odrive
 from ..drivers.odrive import AxisState, ControlMode, InputMode, ProcedureResult
 
+TIME_EPS = 1e-9
+"""[s] times this close are the same tick (a schedule of n periods and a caller's n steps agree to rounding)."""
+
 INPUT_REJECTED_ERROR = "MISSING_INPUT"
 """Axis error (a DBC Axis_Error name) set by a Set_Input_Vel outside CLOSED_LOOP_CONTROL."""
 
@@ -245,20 +248,27 @@ class SimAxis:
         if self._t is None:
             self._t = self._next_hb = self._next_enc = self._fed = t
         out = []
-        while self.all_samples and self._next_enc <= t + 1e-9:  # each estimate at its own time
+        while self.all_samples and self._next_enc <= t + TIME_EPS:  # each estimate at its own time
             self._advance_to(self._next_enc)
             out.append(self.encoder_frame())
             out[-1].timestamp = self._next_enc  # when it was taken: a pair sends its axes' frames in time order
             self._next_enc += self.encoder_period
         self._advance_to(t)
-        if not self.all_samples and t >= self._next_enc:
+        if not self.all_samples and t + TIME_EPS >= self._next_enc:
             out.append(self.encoder_frame())
             self._next_enc = _next_due(self._next_enc, self.encoder_period, t)
-        if t >= self._next_hb:
+        if t + TIME_EPS >= self._next_hb:
             if not self.heartbeats_muted:
                 out.append(self.heartbeat_frame())
             self._next_hb = _next_due(self._next_hb, self.heartbeat_period, t)
         return out
+
+    def restart_timers(self, t: float) -> None:
+        """The axis's clock is ``t`` from now on (a caller's clock changed hands: wall time to lock-step): the
+        first heartbeat and estimate are due a period after ``t``, the watchdog counts from ``t``, nothing is
+        integrated over the jump."""
+        self._t = self._fed = t
+        self._next_hb, self._next_enc = t + self.heartbeat_period, t + self.encoder_period
 
     def _advance_to(self, t: float) -> None:
         """Integrate to ``t``, the watchdog expiring on the way."""
@@ -306,7 +316,7 @@ class SimAxis:
 
 def _next_due(due: float, period: float, t: float) -> float:
     due += period
-    return due if due > t else t + period
+    return due if due > t + TIME_EPS else t + period
 
 
 class ODrivePair:
@@ -410,6 +420,17 @@ class ODrivePair:
         self.stop()
 
     # --- for the world and for tests ----------------------------------------------------
+    def restart_timers(self, t: float) -> None:
+        """Every axis's timers start again at ``t`` (``SimAxis.restart_timers``)."""
+        with self._lock:
+            for axis in self.axes.values():
+                axis.restart_timers(t)
+
+    def heartbeats(self) -> list[can.Message]:
+        """Every axis's heartbeat now (none from a muted one), out of its schedule (a caller standing still)."""
+        with self._lock:
+            return [a.heartbeat_frame() for a in self.axes.values() if not a.heartbeats_muted]
+
     def vel(self, node_id: int) -> float:
         """Motor velocity [rev/s] of an axis, as its encoder reports it."""
         return self.axes[node_id].vel

@@ -90,6 +90,7 @@ FIRMWARE = (4, 5, 7)
 CAPABILITIES = (mav.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | mav.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
                 | mav.MAV_PROTOCOL_CAPABILITY_COMMAND_INT | mav.MAV_PROTOCOL_CAPABILITY_MISSION_INT)
 """AUTOPILOT_VERSION capabilities: the subset of ArduPilot's ``GCS_MAVLINK::capabilities()`` this rover has."""
+TIME_EPS = 1e-9  # [s] times this close are the same tick (n periods and a caller's n steps agree to rounding)
 MAX_STREAM_HZ = 50.0  # ArduPilot caps a stream at its main loop rate; Rover runs at 50 Hz
 
 AUTOPILOT_MODES = {ROVER_MODES[m] for m in ("GUIDED", "AUTO", "RTL", "SMART_RTL", "LOITER", "FOLLOW", "DOCK")
@@ -463,12 +464,12 @@ its old name: (lat, lon)). ``origin_at_boot``: the EKF origin is where the rover
         self._measured = None
 
     def _emit(self, t: float) -> None:
-        if t >= self._next_hb:
+        if t + TIME_EPS >= self._next_hb:
             if not self.heartbeats_stopped:
                 self._send_heartbeat()
             self._next_hb = _next_due(self._next_hb, self.heartbeat_period, t)
         for msg_id, period in self.intervals.items():
-            if period > 0 and t >= self._next_stream.get(msg_id, t):
+            if period > 0 and t + TIME_EPS >= self._next_stream.get(msg_id, t):
                 self._send_stream(msg_id, t)
                 self._next_stream[msg_id] = _next_due(self._next_stream.get(msg_id, t), period, t)
 
@@ -585,6 +586,23 @@ its old name: (lat, lon)). ``origin_at_boot``: the EKF origin is where the rover
         self.kill()
 
     # --- for the world ------------------------------------------------------------------
+    def restart_timers(self, t: float) -> None:
+        """The rover's clock is ``t`` from now on (its caller's clock changed hands: wall time to lock-step):
+        the first heartbeat and stream messages are due a period after ``t``, the target timeout and the FS_GCS
+        failsafe count from ``t`` (a target or GCS heartbeat it holds is as old as ``t``), and its uptime
+        (``time_boot_ms``) is ``t`` (forward across the jump: the caller's clock is ahead of the wall phase)."""
+        with self._lock:
+            self._t, self._t0, self._next_hb = t, 0.0, t + self.heartbeat_period
+            self._next_stream = {msg_id: t + period for msg_id, period in self.intervals.items()}
+            self.target_time = t if self.target_time is not None else None
+            self.gcs_time = t if self.gcs_time is not None else None
+
+    def heartbeat(self) -> None:
+        """One HEARTBEAT now, out of its schedule (a caller standing still); none while stopped or killed."""
+        with self._lock:
+            if not (self._killed or self.heartbeats_stopped):
+                self._send_heartbeat()
+
     def body_velocity(self) -> tuple[float, float]:
         """(v [m/s], w [rad/s], counter-clockwise) the rover drives its body with now, in our convention."""
         with self._lock:
@@ -629,7 +647,7 @@ its old name: (lat, lon)). ``origin_at_boot``: the EKF origin is where the rover
 
 def _next_due(due: float, period: float, t: float) -> float:
     due += period
-    return due if due > t else t + period
+    return due if due > t + TIME_EPS else t + period
 
 
 __all__ = ["DATA_STREAMS", "DEFAULT_DATUM", "ONCE", "STREAMS", "SimRover", "geodetic_to_ne", "geodetic_to_site",

@@ -30,7 +30,7 @@ import numpy as np
 import zenoh
 
 from ..comm import Keys, MessageError, decode, encode
-from ..comm.lockstep import CommandBarrier
+from ..comm.lockstep import CommandBarrier, DeviceWires
 from ..comm.messages import Answer, Clock, CmdVel, FaultAck, FaultRequest, Fix, Imu, Odom, Scan, Truth, WorldStatus
 from ..scenario import Scenario, fix_due, slot_position
 from .device_streams import relative_pose
@@ -102,6 +102,7 @@ class WorldServer:
         self.alive: set[int] = set()
         self.dead: set[int] = set()  # agents gone (killed, crashed or left); announced in every Clock
         self.barrier = CommandBarrier(self._cv, lambda: self.alive, cfg.lockstep_timeout_s)
+        self.wires = DeviceWires(cfg.lockstep_timeout_s)  # the devices' half of each step's commands
         self.acks: dict[tuple[int, str], list[int]] = {}
         self._pending_faults = sorted(cfg.faults, key=lambda f: f[2])
         self.last_cmd: dict[int, tuple[float, float, float, int]] = {}  # id -> (v, w, sim t received, step)
@@ -141,11 +142,13 @@ class WorldServer:
         m = self._decode_answer(sample, Answer, hosted=True)
         if m is not None:
             with self._cv:
-                self._answered(m.id, m.step, None)  # the command itself is on the device's wire
+                wire = None if m.wire is None else (m.wire, m.sync)
+                self._answered(m.id, m.step, None, wire)  # the command itself is on the device's wire
 
-    def _answered(self, rid: int, step: int, cmd: tuple[float, float] | None) -> None:
+    def _answered(self, rid: int, step: int, cmd: tuple[float, float] | None,
+                  wire: tuple[int, bool] | None = None) -> None:
         """Robot ``rid`` has commanded ``step`` (caller holds the lock)."""
-        self.barrier.answered(rid, step, cmd)
+        self.barrier.answered(rid, step, cmd, wire)
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         rid = Keys.id_of(str(sample.key_expr))
@@ -198,9 +201,11 @@ class WorldServer:
                 if kind == "kill":
                     self.alive -= set(done)
                     self.dead |= set(done)
-                elif kind == "restart":
+                elif kind == "restart":  # its driver opens on the device, which stands at this step's time
                     while not set(done) <= self.alive and time.monotonic() < deadline and not self.cfg.stop.is_set():
-                        self._cv.wait(0.05)
+                        self._cv.wait(0.01)
+                        for rid in set(done) & self.devices.keys():
+                            self.devices[rid].serve(self.t)
                     self.barrier.responsive(done)
 
     # --- run ---------------------------------------------------------------------------
@@ -404,6 +409,7 @@ class WorldServer:
         commands: dict[int, tuple[float, float]] = {}
         with self._cv:
             step_cmds = self.barrier.take(self.k)
+            wires = self.barrier.take_wires(self.k)
             for rid in self.ids:
                 if rid in self.devices:
                     continue  # the device moves the body (_advance)
@@ -413,8 +419,11 @@ class WorldServer:
                 last = self.last_cmd.get(rid)
                 timeout = self.sc.robots[self.world.index[rid]].cmd_timeout
                 commands[rid] = (last[0], last[1]) if last is not None and self.t - last[2] <= timeout else (0.0, 0.0)
+        short = self.wires.deliver(self.devices, wires, self.t, self.cfg.stop)  # each device takes its commands
+        if short:  # the world goes on without their commands: a late step, as for a missing answer
+            self.late_steps += 1
+            self.events.append({"t": self.t, "robots": short, "event": "command late on the device's wire"})
         for rid, dev in self.devices.items():
-            dev.take_commands(self.t)
             commands[rid] = dev.motion(self.t + self.sc.dt)
         return commands, sorted(step_cmds)
 
@@ -442,11 +451,14 @@ class WorldServer:
         return result
 
     def linger(self, timeout_s: float) -> None:
-        """After the run: wait until every agent has left (or a signal, or the timeout)."""
+        """After the run: wait until every agent has left (or a signal, or the timeout). Lock-step devices answer
+        their drivers' closing (HOLD, disarm: the rover ACKs them) at the run's last time meanwhile."""
         deadline = time.monotonic() + timeout_s
         with self._cv:
             while self.alive and not self.cfg.stop.is_set() and time.monotonic() < deadline:
-                self._cv.wait(0.1)
+                self._cv.wait(0.02 if self.devices and not self.cfg.realtime else 0.1)
+                for dev in self.devices.values() if not self.cfg.realtime else ():
+                    dev.serve(self.t)
 
     def write_result(self, result: dict) -> None:
         """``world.json`` after the session has closed, so late messages (the agents' final zeros) are in."""
