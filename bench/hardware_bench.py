@@ -59,7 +59,7 @@ def run(out: Path, driver: str, device: dict, ideal: bool, realtime: bool) -> di
     out.mkdir(parents=True, exist_ok=True)
     path = out / "scenario.yaml"
     path.write_text(yaml.safe_dump(scenario(driver, device, ideal)))
-    cmd = ["stack-fleet", "run", str(path), "--out", str(out / "run"), "--no-plots", "--no-progress", "--no-record"]
+    cmd = [sys.executable, "-m", "stack.fleet", "run", str(path), "--out", str(out / "run"), "--no-plots", "--no-progress", "--no-record"]
     proc = subprocess.run(cmd + (["--realtime"] if realtime else []), capture_output=True, text=True, timeout=300)
     rep_path = out / "run" / "report.json"
     if not rep_path.exists():
