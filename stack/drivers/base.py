@@ -108,7 +108,19 @@ class Keepalive:
     failsafe listens for during the handshake)."""
 
 
-class Driver(ABC):
+class Counted:
+    """Named counters under ``self._books`` (a lock), shared by drivers and sensor sources: each has
+    ``counters``, ``name`` and ``_on_malformed``."""
+
+    def count(self, name: str, malformed: bool = False) -> None:
+        """``counters[name] += 1``; a malformed one is also told to ``on_malformed`` as ``<name>/<counter>``."""
+        with self._books:
+            self.counters[name] = self.counters.get(name, 0) + 1
+        if malformed:
+            self._on_malformed(f"{self.name}/{name}")
+
+
+class Driver(Counted, ABC):
     """Base of every driver. Subclasses never clamp, never time out, never forget the final zero."""
 
     name = "base"
@@ -305,12 +317,6 @@ class Driver(ABC):
                 p.shift(dt)
 
     # --- counters and liveness ---------------------------------------------------------
-    def count(self, name: str, malformed: bool = False) -> None:
-        """``counters[name] += 1``; a malformed one is also told to ``on_malformed`` as ``<driver>/<name>``."""
-        with self._books:
-            self.counters[name] = self.counters.get(name, 0) + 1
-        if malformed:
-            self._on_malformed(f"{self.name}/{name}")
 
     @property
     def wire_sent(self) -> int:

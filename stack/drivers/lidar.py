@@ -38,7 +38,7 @@ import numpy as np
 
 from ..comm import Keys, receive
 from ..comm.messages import Scan
-from .base import Driver, DriverError
+from .base import Counted, Driver, DriverError
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +61,7 @@ class LidarScan:
     """[m] the sensor's longest range (a reading at or beyond it: no return)."""
 
 
-class Lidar(ABC):
+class Lidar(Counted, ABC):
     """Base of every sensor source. ``on_scan(LidarScan)`` is called from the source's thread for each scan."""
 
     name = "base"
@@ -124,12 +124,6 @@ class Lidar(ABC):
             self._on_scan(scan)
 
     # --- counters and liveness -----------------------------------------------------------
-    def count(self, name: str, malformed: bool = False) -> None:
-        with self._books:
-            self.counters[name] = self.counters.get(name, 0) + 1
-        if malformed:
-            self._on_malformed(f"{self.name}/{name}")
-
     def age(self, now: float | None = None) -> float | None:
         """Seconds on the source's clock since the newest scan; None before the first."""
         with self._books:
