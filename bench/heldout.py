@@ -7,7 +7,9 @@ Courses: ``stack.fleet.courses`` with the held-out seeds HELDOUT_START .. HELDOU
 (1_000_000 ..; ``docs/courses.md``), the same N seeds at every density level (so a seed keeps its
 formation and robot count across densities). A policy runs on the courses that list it in
 ``bench.policies``: drl, aina and qlearn everywhere, pid (no obstacle avoidance) on `low` only, where
-the formation's lane is free. Each run is one ``stack-fleet run FILE --policy P --out DIR --no-plots
+the formation's lane is free. ``--arrival N``: fuzzy and fuzzy-lstm (Chang 2020) on N held-out arrival-time
+tasks (``stack.fleet.arrival_tasks``: 3-6 robots 12-45 m from one target among blocks, to arrive together),
+the same seeds, in the table as density ``arrival``. Each run is one ``stack-fleet run FILE --policy P --out DIR --no-plots
 --no-progress`` process (its own router and fleet name, the world, one agent per robot); ``--jobs``
 of them at a time, or ``--engine dask`` (``stack.fleet.jobs``). Writes OUT/heldout.{md,json} (per policy x density: success, collision runs and
 counts, timeouts, time to goal, formation error) and OUT/heldout_success.png.
@@ -26,12 +28,15 @@ sys.path.insert(0, str(ROOT))
 
 from fleetrun import engine, report_of  # noqa: E402  (bench/, beside this script)
 
+from stack.fleet.arrival_tasks import generate_arrival_task, write_task  # noqa: E402
 from stack.fleet.courses import DENSITIES, HELDOUT_SEEDS, CourseError, generate_course, write_course  # noqa: E402
 from stack.fleet.jobs import Job, add_engine_args, cli_task, run_jobs  # noqa: E402
 
 POLICIES = ("drl", "aina", "qlearn", "pid")
+ARRIVAL_POLICIES = ("fuzzy", "fuzzy-lstm")  # Chang 2020, on generated arrival-time tasks (density "arrival")
 COLUMNS = ("policy", "density", "runs", "success", "collision_runs", "robot_robot", "robot_obstacle", "timeouts",
-           "errors", "time_to_goal_s", "formation_error_rms_m", "min_robot_distance_m", "min_obstacle_distance_m")
+           "errors", "time_to_goal_s", "formation_error_rms_m", "arrival_spread_steps", "min_robot_distance_m",
+           "min_obstacle_distance_m")
 
 
 def outcome(rep: dict | None) -> str:
@@ -53,7 +58,7 @@ def row(task: dict, rep: dict | None, err: str, wall: float) -> dict:
     r |= {"outcome": outcome(rep), "error": err or None, "wall_s": round(wall, 1),
           "robot_robot": col.get("robot_robot"), "robot_obstacle": col.get("robot_obstacle")}
     for k in ("leader_time_to_goal_s", "formation_error_rms_m", "min_robot_distance_m", "min_obstacle_distance_m",
-              "sim_time_s", "end_reason"):
+              "sim_time_s", "end_reason", "arrival_spread_steps"):
         r[k] = (rep or {}).get(k)
     return r
 
@@ -86,6 +91,18 @@ def plan(courses: int, densities: list[str], policies: list[str], out: Path) -> 
     return tasks
 
 
+def plan_arrival(tasks_n: int, policies: list[str], out: Path) -> list[dict]:
+    """Write the held-out arrival-time tasks under OUT/courses/arrival/ and list the runs (Chang 2020's policies)."""
+    tasks = []
+    for seed in HELDOUT_SEEDS[:tasks_n]:
+        t = generate_arrival_task(seed, purpose="heldout")
+        path = write_task(t, out / "courses" / "arrival" / f"{t.scenario['name']}.yaml")
+        for p in policies:
+            tasks.append({"policy": p, "density": "arrival", "seed": seed, "robots": t.robots, "family": "arrival",
+                          "file": str(path), "out": str(out / "runs" / p / "arrival" / str(seed))})
+    return tasks
+
+
 def _mean(xs: list) -> float | None:
     xs = [x for x in xs if x is not None]
     return round(sum(xs) / len(xs), 3) if xs else None
@@ -106,6 +123,7 @@ def aggregate(rows: list[dict], policies: list[str], densities: list[str]) -> li
                 "timeouts": sum(r["outcome"] == "timeout" for r in rs), "errors": sum(r["outcome"] == "error" for r in rs),
                 "time_to_goal_s": _mean([r["leader_time_to_goal_s"] for r in won]),
                 "formation_error_rms_m": _mean([r["formation_error_rms_m"] for r in rs]),
+                "arrival_spread_steps": _mean([r["arrival_spread_steps"] for r in won]),
                 "min_robot_distance_m": min((r["min_robot_distance_m"] for r in rs if r["min_robot_distance_m"] is not None), default=None),
                 "min_obstacle_distance_m": min((r["min_obstacle_distance_m"] for r in rs if r["min_obstacle_distance_m"] is not None),
                                                default=None),
@@ -119,8 +137,9 @@ def markdown(table: list[dict], seeds: range, command: str) -> str:
             return "-"
         return f"{100 * v:.0f} %" if k == "success" else f"{v:.2f}" if isinstance(v, float) else str(v)
 
-    lines = [f"Held-out courses: seeds {seeds.start}..{seeds.stop - 1} at each density (`stack.fleet.courses`, "
-             "docs/courses.md); time to goal over successful runs; formation error RMS over all runs.", "",
+    lines = [f"Held-out seeds {seeds.start}..{seeds.stop - 1}: courses at each density (`stack.fleet.courses`, "
+             "docs/courses.md) and arrival-time tasks (`stack.fleet.arrival_tasks`, density `arrival`); time to goal "
+             "(the leader's) and arrival spread over successful runs; formation error RMS over all runs.", "",
              "| " + " | ".join(COLUMNS) + " |", "|" + " --- |" * len(COLUMNS)]
     lines += ["| " + " | ".join(cell(k, r[k]) for k in COLUMNS) + " |" for r in table]
     return "\n".join(lines + ["", f"command: `{command}`", ""])
@@ -169,30 +188,36 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--courses", type=int, default=34, help="held-out courses per density (default 34: 102 in all)")
     ap.add_argument("--densities", type=_list(tuple(DENSITIES)), default=list(DENSITIES))
     ap.add_argument("--policies", type=_list(POLICIES), default=list(POLICIES))
+    ap.add_argument("--arrival", type=int, default=34, metavar="N",
+                    help="held-out arrival-time tasks for fuzzy and fuzzy-lstm (Chang 2020; 0: none)")
+    ap.add_argument("--arrival-policies", type=_list(ARRIVAL_POLICIES), default=list(ARRIVAL_POLICIES))
     ap.add_argument("--resume", action="store_true", help="keep the runs that already have a report.json")
     ap.add_argument("--out", type=Path, default=Path("runs/heldout"))
     add_engine_args(ap)
     a = ap.parse_args(argv)
     eng = engine(ap, a)
-    if not 1 <= a.courses <= len(HELDOUT_SEEDS):
-        ap.error(f"--courses {a.courses}: expected 1..{len(HELDOUT_SEEDS)}")
+    if not 0 <= a.courses <= len(HELDOUT_SEEDS) or not 0 <= a.arrival <= len(HELDOUT_SEEDS) or not a.courses + a.arrival:
+        ap.error(f"--courses {a.courses}, --arrival {a.arrival}: expected 0..{len(HELDOUT_SEEDS)} each, not both 0")
     try:
         tasks = plan(a.courses, a.densities, a.policies, a.out.resolve())
+        tasks += plan_arrival(a.arrival, a.arrival_policies, a.out.resolve())
+        tasks.sort(key=lambda t: t["seed"])  # seed-major: a run cut short leaves whole seeds; --resume goes on
     except CourseError as e:
         print(f"heldout: {e}", file=sys.stderr)
         return 2
     t0 = time.perf_counter()
     rows = run_all(tasks, eng, a.resume)
-    rows.sort(key=lambda r: (a.policies.index(r["policy"]), a.densities.index(r["density"]), r["seed"]))
-    table = aggregate(rows, a.policies, a.densities)
+    policies, densities = a.policies + a.arrival_policies, a.densities + ["arrival"]
+    rows.sort(key=lambda r: (policies.index(r["policy"]), densities.index(r["density"]), r["seed"]))
+    table = aggregate(rows, policies, densities)
     command = "python bench/heldout.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    seeds = HELDOUT_SEEDS[: a.courses]
+    seeds = HELDOUT_SEEDS[: max(a.courses, a.arrival)]
     md = markdown(table, seeds, command) + f"wall time {time.perf_counter() - t0:.0f} s, {eng.jobs} job(s), engine {eng.engine}\n"
     a.out.mkdir(parents=True, exist_ok=True)
     (a.out / "heldout.md").write_text(md)
-    (a.out / "heldout.json").write_text(json.dumps({"seeds": [seeds.start, seeds.stop - 1], "densities": a.densities,
-                                                    "policies": a.policies, "table": table, "runs": rows}, indent=1) + "\n")
-    plot(table, a.policies, a.densities, a.out / "heldout_success.png")
+    (a.out / "heldout.json").write_text(json.dumps({"seeds": [seeds.start, seeds.stop - 1], "densities": densities,
+                                                    "policies": policies, "table": table, "runs": rows}, indent=1) + "\n")
+    plot(table, policies, densities, a.out / "heldout_success.png")
     print(md)
     print(f"table: {a.out / 'heldout.md'}, {a.out / 'heldout.json'}; plot: {a.out / 'heldout_success.png'}")
     return 0

@@ -40,7 +40,7 @@ from stack.comm.session import client, free_tcp_endpoint, open_session  # noqa: 
 from stack.fleet.procs import wait_port  # noqa: E402
 
 TICK = os.sysconf("SC_CLK_TCK")
-KINDS = (("py-spy", "py-spy"), ("stack.sim_bridge", "world"), ("stack.agents", "agent"), ("stack.comm.router", "router"),
+KINDS = (("py-spy", "py-spy"), ("stack.sim_bridge", "world"), ("stack.agents", "agent"), ("stack.comm.router", "router"), ("stack.fleet.record", "recorder"),
          ("stack-fleet", "orchestrator"), ("stack.fleet", "orchestrator"))
 
 # the phases of a step, by the first frame (from the leaf up) that names one; py-spy frames are "func (file:line)"

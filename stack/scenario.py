@@ -145,6 +145,9 @@ class RobotConfig:
     where the simulated device is ideal (``robot.device.ideal``), else the device's own frame (``boot``; a
     ``mavlink`` rover ``boot-position``, or ``site`` with ``ekf_origin: site``; a ``jackal`` with
     ``odom_frame: site``, ``site``). The world's own ``sim`` base publishes its odometry in this frame."""
+    guard: Any = None
+    """``robot.guard`` resolved (``stack.agents.guard.GuardConfig``: margin, decel, lag_s, enabled): the collision
+    guard under every policy; None where the scenario gives none (the defaults, on)."""
     ros_graph: Any = None
     """``robot.ros_graph`` resolved (``stack.agents.ros_graph.RosGraphConfig``): the agent's estimate, slot and goal
     as ROS 2 topics (docs/ros2.md); None where the scenario gives none (off)."""
@@ -379,7 +382,7 @@ def _max(rd: "_Reader", v: int, hi: int, path: str) -> int:
 
 
 _CORE_KEYS = {"radius", "v_max", "w_max", "lidar", "odom_noise", "imu_noise", "fix", "comm_range", "cmd_timeout", "base",
-              "policy", "driver", "device", "odom_origin", "ros_graph"}
+              "policy", "driver", "device", "odom_origin", "ros_graph", "guard"}
 
 ODOM_ORIGINS = ("auto", "site", "boot", "boot-position", "first")
 
@@ -413,7 +416,19 @@ def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict
         out["odom_origin"] = rd.choice(d["odom_origin"], f"{path}.odom_origin", ODOM_ORIGINS)
     if "ros_graph" in d:
         out["ros_graph"] = _ros_graph(rd, d["ros_graph"], f"{path}.ros_graph", out.get("ros_graph"))
+    if "guard" in d:
+        out["guard"] = _guard(rd, d["guard"], f"{path}.guard", out.get("guard"))
     return out
+
+
+def _guard(rd: _Reader, value: Any, path: str, prev):
+    """``robot.guard`` (``stack.agents.guard.GuardConfig``) over the defaults' (``prev``)."""
+    from .agents.guard import GuardConfig
+
+    try:
+        return settings.read(GuardConfig, value, path, prev)
+    except settings.SettingError as e:
+        raise rd.fail(e.path, e.what) from None
 
 
 def _ros_graph(rd: _Reader, value: Any, path: str, prev):

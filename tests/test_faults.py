@@ -31,7 +31,7 @@ def test_killed_follower_is_dropped_at_once_and_the_rest_carry_on(tmp_path):
     assert not rep["robots"]["2"]["alive_at_end"] and rep["robots"]["1"]["final_error_m"] < 0.3
     # repeatable: the same run again gives the same report and the same ground truth
     _, rep2 = run_fleet(path, tmp_path / "b", "--kill", "2@5", "--no-plots")
-    drop = ("wall_time_s", "control_loop_ms", "state_latency_ms", "steps_per_s")
+    drop = ("wall_time_s", "control_loop_ms", "control_compute_ms", "state_latency_ms", "steps_per_s")
     assert {k: v for k, v in rep.items() if k not in drop} == {k: v for k, v in rep2.items() if k not in drop}
     za, zb = np.load(tmp_path / "a" / "truth.npz"), np.load(tmp_path / "b" / "truth.npz")
     assert np.array_equal(za["x"], zb["x"]) and np.array_equal(za["alive"], zb["alive"])

@@ -44,6 +44,10 @@ def test_four_agents_reach_their_slots(tmp_path, diamond):
     for k in ("sent", "delivered", "dropped_loss", "dropped_range"):
         assert isinstance(rep["comm"][k], int)
     assert rep["control_loop_ms"]["p50"] is not None and rep["control_loop_ms"]["p99"] >= rep["control_loop_ms"]["p50"]
+    # the agents' own work a step, one sample a step per agent: a part of a lock-step step's wall time
+    c = rep["control_compute_ms"]
+    assert abs(c["samples"] - rep["control_loop_ms"]["samples"]) <= 4 and c["samples"] >= 4 * (rep["steps"] - 10)
+    assert 0 < c["p50"] <= c["p99"] < 1000.0 * rep["wall_time_s"]
 
     # states crossed processes: every agent heard the other three
     assert rep["comm"]["delivered"] > 0
@@ -80,7 +84,7 @@ def test_lockstep_runs_are_deterministic(tmp_path):
         proc, rep = run_fleet(path, tmp_path / name, "--no-plots")
         assert rep is not None, proc.stderr
         reps.append(rep)
-    drop = ("wall_time_s", "control_loop_ms", "state_latency_ms", "steps_per_s")  # wall-clock measurements
+    drop = ("wall_time_s", "control_loop_ms", "control_compute_ms", "state_latency_ms", "steps_per_s")  # wall-clock measurements
     a, b = ({k: v for k, v in r.items() if k not in drop} for r in reps)
     assert a["comm"]["dropped_loss"] > 0  # the loss model was in the loop
     assert a == b
@@ -188,4 +192,5 @@ def test_realtime_fleet_with_an_outside_listener(tmp_path):
     assert rep["robots"]["0"]["path_length_m"] > 2.5  # the leader drove the 3 m on the wall clock
     assert rep["collisions"] == {"robot_robot": 0, "robot_obstacle": 0}
     assert rep["control_loop_ms"]["samples"] >= 4 * 0.5 * rep["steps"]  # the agents stepped on the wall clock too
+    assert abs(rep["control_compute_ms"]["samples"] - rep["control_loop_ms"]["samples"]) <= 4  # one of each a step
     assert len(seen) > 20 and seen[0].endswith("/world/clock")

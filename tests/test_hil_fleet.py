@@ -148,7 +148,7 @@ def test_mixed_fleet_one_driver_of_each_kind(tmp_path, sim_run):
     assert "/dev/pts/999" not in (out / "scenario.agents.yaml").read_text()
 
 
-WALL_CLOCK = ("wall_time_s", "steps_per_s", "control_loop_ms", "state_latency_ms")
+WALL_CLOCK = ("wall_time_s", "steps_per_s", "control_loop_ms", "control_compute_ms", "state_latency_ms")
 """Report entries measured on the wall clock: the only ones a lock-step run may change."""
 
 

@@ -15,7 +15,7 @@ import pytest
 
 from conftest import ROOT, run_cli, scenario_dict, write_scenario
 
-TIMING = ("wall_time_s", "control_loop_ms", "state_latency_ms", "steps_per_s")  # wall-clock measurements
+TIMING = ("wall_time_s", "control_loop_ms", "control_compute_ms", "state_latency_ms", "steps_per_s")  # wall-clock measurements
 
 
 ROBOTS = 2

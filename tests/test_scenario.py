@@ -67,6 +67,8 @@ BAD = [
      "robot.fuzzy.coordinator: expected one of flc, lstm, none, got 'central'"),
     (lambda d: d["robot"].__setitem__("fuzzy", {"target": [1, "x"]}), "robot.fuzzy.target[1]: expected a number, got text ('x')"),
     (lambda d: d["robot"].__setitem__("sim", {"port": 1}), "robot.sim.port: unknown field (allowed: none)"),
+    (lambda d: d["robots"][1].__setitem__("guard", {"margin": -1}), "robots[1].guard.margin: must be >= 0, got -1"),
+    (lambda d: d["robot"].__setitem__("guard", {"brake": 2}), "robot.guard.brake: unknown field (allowed: decel, enabled, lag_s, margin)"),
 ]
 
 

@@ -36,6 +36,7 @@ from ..scenario import Scenario, fix_due
 from .frames import StreamClock
 from .lidar import scan_from_driver, scan_from_lidar
 from .ros_graph import RosGraphLink, open_ros_graph
+from .guard import GuardConfig
 from .step import OdomSample, StepConfig, StepInputs, StepOutput, StepPipeline
 from .timing import LatencyHistogram
 
@@ -114,13 +115,15 @@ class Agent:
         self.keys = Keys(cfg.fleet)
         self.dt = sc.dt
         self.pipeline = StepPipeline(sc, self.id, policy=cfg.policy, seed=cfg.seed,
-                                     config=StepConfig(odom_origin=cfg.odom_origin or self.robot.odom_origin))
+                                     config=StepConfig(odom_origin=cfg.odom_origin or self.robot.odom_origin,
+                                                       guard=self.robot.guard or GuardConfig()))
         self.malformed: dict[str, int] = {}
         self.sent = 0
         self.seq = 0
         self.step = -1
         self.sim_now = 0.0
-        self.hist = LatencyHistogram()
+        self.hist = LatencyHistogram()  # newest sensor message -> command (includes waiting for the tick)
+        self.compute = LatencyHistogram()  # the agent's own work a step: tick (or barrier) -> command sent
         self.state_latency = LatencyHistogram()
         self.fault = ""
         self.sensor_stale = 0  # times the robot was stopped because a stream went stale
@@ -351,10 +354,14 @@ class Agent:
                 if delay > 0 and self.cfg.stop.wait(delay):
                     break
                 next_tick = max(next_tick + self.dt, time.monotonic() - self.dt)  # late by > a period: skip ahead
+            t_tick = time.perf_counter()  # real time: the tick; lock-step: reset once the barrier has let go
             inp = gather()
             if inp is None:
                 continue
+            if self.cfg.lockstep:
+                t_tick = time.perf_counter()
             self._send(inp, self.pipeline.step(inp))
+            self.compute.add((time.perf_counter() - t_tick) * 1000.0)
             steps += 1
             if self.cfg.steps is not None and steps >= self.cfg.steps:
                 break
@@ -527,14 +534,14 @@ class Agent:
         d = Diag(id=self.id, stamp=self._stamp(), step=self.step, state=state, sent=self.sent, received=c.received,
                  delivered=c.delivered, dropped_loss=c.dropped_loss, dropped_range=c.dropped_range,
                  malformed=sum(malformed.values()), malformed_by_key=malformed, loop_hist=self.hist.as_dict(),
-                 state_latency_hist=self.state_latency.as_dict(),
+                 compute_hist=self.compute.as_dict(), state_latency_hist=self.state_latency.as_dict(),
                  situations={k: v for k, v in pl.decision.counts.items() if v}, fixes_used=pc.fixes_used,
                  fixes_rejected=pl.estimator.rejected_fixes, inputs_rejected=pl.estimator.rejected_nan,
                  sensor_stale=self.sensor_stale, fault=self.fault, noticed=dict(pc.noticed), led_since=pl.led_since,
                  rejected_states=pc.rejected_states, neighbour_waits_timed_out=self.barrier.neighbour_timeouts,
                  device_odom_late=self.barrier.device_late, device_odom_strays=self.barrier.strays,
                  odom_stale=pc.odom_stale, lidar_stale=pc.lidar_stale, scans_from_driver=self.scans_from_driver,
-                 shield_masked=getattr(pl.policy, "masked", None), links=pl.radio.links(), stuck=pl.decision.livelock())
+                 shield_masked=getattr(pl.policy, "masked", None), guard_caps=pl.guard.capped, links=pl.radio.links(), stuck=pl.decision.livelock())
         self._diag_pub.put(encode(d))
         if self.view is not None:
             self.view.on_diag(d)

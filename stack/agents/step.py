@@ -40,6 +40,7 @@ from ..estimation.pose import Pose
 from ..policies import make_policy
 from .decision import DecisionLayer, Neighbour, obstacle_distance
 from .frames import OdomFrame
+from .guard import CollisionGuard, GuardConfig
 
 log = logging.getLogger("stack.agent")
 
@@ -111,6 +112,8 @@ class StepConfig:
     odom_origin: str = "site"
     """Where the odom frame is in the site frame: ``site``, ``boot``, ``boot-position`` or ``first``
     (``frames.OdomFrame``); the agent passes the robot's resolved ``RobotConfig.odom_origin``."""
+    guard: GuardConfig = field(default_factory=GuardConfig)
+    """The collision guard under every policy (:mod:`.guard`): the forward speed the robot can stop from."""
 
 
 @dataclass
@@ -154,6 +157,8 @@ class StepPipeline:
         self.gone: set[int] = set()
         self.led_since: float | None = None
         self.counters = StepCounters()
+        lid = robot.lidar
+        self.guard = CollisionGuard(robot.radius, lid.fov, lid.beams, lid.range, self.cfg.guard)
 
     @property
     def needs_lidar(self) -> bool:
@@ -175,6 +180,8 @@ class StepPipeline:
             situation, obs, target = dec.situation, dec.obs, dec.target
             if dec.obs is not None and stale is None:
                 v, w = self._act(dec, inp.t_run)
+                if inp.scan_t is not None and inp.t - inp.scan_t <= self.cfg.lidar_stale_s:
+                    v = self.guard.limit(v, self.scans[-1])  # a scan too old (pid drives without one) judges nothing
         d_goal = float(obs.d_g) if situation == "peer" and obs is not None else None
         return StepOutput(v=v, w=w, pose=pose, situation=situation, cov_trace=self.estimator.cov_trace,
                           d_goal=d_goal, stale=stale, target=target)

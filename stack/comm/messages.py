@@ -188,6 +188,7 @@ class Diag(_Msg):
     malformed: int = 0
     malformed_by_key: dict[str, int] = {}
     loop_hist: dict[int, int] = {}
+    compute_hist: dict[int, int] = {}  # the agent's own work a step: inputs taken -> command sent [ms buckets]
     state_latency_hist: dict[int, int] = {}
     situations: dict[str, int] = {}
     fixes_used: int = 0
@@ -205,6 +206,7 @@ class Diag(_Msg):
     lidar_stale: int = 0  # control steps commanded zero because the lidar was stale (policies that need it)
     scans_from_driver: int = 0  # real time: scans the robot's own driver read (a Jackal's LaserScan)
     shield_masked: int | None = None  # --policy drl: steps at which the action shield overruled the network
+    guard_caps: int = 0  # steps at which the collision guard lowered the policy's forward speed
     links: dict[int, dict[str, int]] | None = None  # sender id -> {delivered, dropped_range, dropped_loss}, cumulative
     # (RadioModel.links()): the comm graph a recorder draws; None from senders that do not count per link
     stuck: dict | None = None  # stuck episodes, what resolved them, the leader hold's give-ups (stack.agents.livelock)

@@ -191,8 +191,8 @@ def estimator_rmse(log: TruthLog, j: int, estimates: list[tuple[int, float, floa
 
 
 DIAG_FIELDS = ("fixes", "estimator_inputs_rejected", "sensor_stale_stops", "states_rejected", "driver_fault",
-               "neighbour_waits_timed_out", "device_odom_late", "scans_from_driver", "shield_masked", "led_since_s", "stuck",
-               "device_odom_strays", "odom_stale_stops", "lidar_stale_stops")
+               "neighbour_waits_timed_out", "device_odom_late", "scans_from_driver", "shield_masked", "guard_caps",
+               "led_since_s", "stuck", "device_odom_strays", "odom_stale_stops", "lidar_stale_stops")
 
 
 def diag_fields(d) -> dict:
@@ -203,7 +203,8 @@ def diag_fields(d) -> dict:
             "estimator_inputs_rejected": d.inputs_rejected, "sensor_stale_stops": d.sensor_stale,
             "states_rejected": d.rejected_states, "driver_fault": d.fault or None,
             "neighbour_waits_timed_out": d.neighbour_waits_timed_out, "device_odom_late": d.device_odom_late,
-            "scans_from_driver": d.scans_from_driver, "shield_masked": d.shield_masked, "led_since_s": d.led_since,
+            "scans_from_driver": d.scans_from_driver, "shield_masked": d.shield_masked, "guard_caps": d.guard_caps,
+            "led_since_s": d.led_since,
             "stuck": d.stuck, "device_odom_strays": d.device_odom_strays, "odom_stale_stops": d.odom_stale,
             "lidar_stale_stops": d.lidar_stale}
 
@@ -236,8 +237,8 @@ def comm_totals(diags: dict, world: dict) -> dict:
 
 
 def latency_percentiles(diags: dict, hist: str) -> dict:
-    """p50, p99 [ms] and sample count of one latency histogram (``loop_hist``, ``state_latency_hist``)
-    merged over agents."""
+    """p50, p99 [ms] and sample count of one latency histogram (``loop_hist``, ``compute_hist``,
+    ``state_latency_hist``) merged over agents."""
     h = LatencyHistogram()
     for d in diags.values():
         h.merge(getattr(d, hist))

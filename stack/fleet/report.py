@@ -66,6 +66,7 @@ def report_of(sc: Scenario, log: TruthLog, tg: Targets, world: dict, *, diags: d
         "robots": {str(rid): m.robot_entry(sc, log, tg, rid, diags.get(rid), estimates.get(rid, [])) for rid in log.ids},
         "comm": m.comm_totals(diags, world),
         "control_loop_ms": m.latency_percentiles(diags, "loop_hist"),
+        "control_compute_ms": m.latency_percentiles(diags, "compute_hist"),
         "state_latency_ms": m.latency_percentiles(diags, "state_latency_hist"),
         "faults": m.fault_details(faults, diags, f) + m.device_faults(world, diags, log),
         "crashed": crashed,
@@ -97,5 +98,5 @@ def _empty_report(sc: Scenario, wall: float, faults: list, crashed: list) -> dic
             "min_obstacle_distance_m": None, "max_robot_distance_m": None, "connectivity": None,
             "formation_error_rms_m": None, "arrival_spread_steps": None, "robots": {},
             "comm": {"sent": 0, "delivered": 0, "dropped_loss": 0, "dropped_range": 0},
-            "control_loop_ms": {"p50": None, "p99": None}, "faults": faults, "crashed": crashed,
+            "control_loop_ms": {"p50": None, "p99": None}, "control_compute_ms": {"p50": None, "p99": None}, "faults": faults, "crashed": crashed,
             "end_reason": "no world log"}

@@ -46,12 +46,16 @@ class SinkConfig:
     """Samples waiting for the writer thread at most; past that, new ones are dropped and counted."""
     compression: str = "zstd"
     """MCAP chunk compression: zstd, lz4 or none."""
+    batch_s: float = 0.02
+    """The writer thread sleeps this long after each batch (what is queued meanwhile waits, up to ``queue_size``)."""
 
     def __post_init__(self) -> None:
         if self.compression not in COMPRESSION:
             raise ValueError(f"recorder: compression {self.compression!r}: expected one of {', '.join(COMPRESSION)}")
         if self.queue_size < 1:
             raise ValueError("recorder: queue_size must be >= 1")
+        if not 0 <= self.batch_s <= 1:
+            raise ValueError(f"recorder: batch_s must be in [0, 1] s, got {self.batch_s}")
         if self.viz is not None:
             parse_viz_endpoint(self.viz, self.allow_remote)
 
@@ -141,17 +145,29 @@ class QueuedWriter:
 
     # --- the writer thread --------------------------------------------------------------------------
     def _write_loop(self) -> None:
+        """Wake at most every ``cfg.batch_s``, take everything queued by then: a handful of wake-ups a second, not
+        one per sample (each would be a context switch on a core the fleet's processes are waiting for)."""
         self._cpu0 = time.thread_time()
         while True:
-            item = self._q.get()
-            if item is _STOP:
-                break
-            try:
-                self.handle(*item)
-            except Exception:  # noqa: BLE001 - one bad sample must not end the recording
-                log.exception("recorder: a %s sample not recorded", item[0])
-                self.malformed += 1
-        self.finish()
+            batch = [self._q.get()]
+            while True:
+                try:
+                    batch.append(self._q.get_nowait())
+                except queue.Empty:
+                    break
+            for item in batch:
+                if item is _STOP:
+                    self.finish()
+                    return
+                self._handle_one(item)
+            time.sleep(self.cfg.batch_s)
+
+    def _handle_one(self, item) -> None:
+        try:
+            self.handle(*item)
+        except Exception:  # noqa: BLE001 - one bad sample must not end the recording
+            log.exception("recorder: a %s sample not recorded", item[0])
+            self.malformed += 1
 
     def cpu_s(self) -> float:
         """CPU seconds the writer thread has spent so far (call it on the writer thread: :meth:`finish`)."""

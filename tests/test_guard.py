@@ -1,0 +1,89 @@
+"""The collision guard under every policy (stack/agents/guard.py): the forward speed the robot can stop from.
+
+In process: the guard's geometry on hand-made scans, then a step pipeline driving a robot that its policy
+would put into a wall, on the exact unicycle arc (no Zenoh, no world)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from conftest import scenario_dict
+
+from stack.agents.guard import CollisionGuard, GuardConfig
+from stack.agents.step import OdomSample, StepConfig, StepInputs, StepPipeline
+from stack.comm.messages import Scan
+from stack.models.kinematics import arc_step
+from stack.scenario import parse_scenario
+
+FOV, BEAMS, RANGE = math.pi, 181, 5.0
+
+
+def wall_scan(x_wall: float, beams: int = BEAMS) -> np.ndarray:
+    """Ranges from the robot's centre to a wall across its path at x = x_wall (robot frame)."""
+    ang = np.linspace(-FOV / 2, FOV / 2, beams)
+    with np.errstate(divide="ignore"):
+        r = np.where(np.cos(ang) > 1e-9, x_wall / np.cos(ang), np.inf)
+    return np.minimum(r, RANGE)
+
+
+def test_free_distance_to_a_wall_and_a_post_beside_the_path():
+    g = CollisionGuard(0.5, FOV, BEAMS, RANGE, GuardConfig(margin=0.1))
+    assert g.free_distance(wall_scan(2.0)) == pytest.approx(1.4)  # the grown disc's front is 0.6 m ahead
+    assert g.free_distance(np.full(BEAMS, RANGE)) == math.inf  # nothing seen
+    post = np.full(BEAMS, RANGE)
+    post[90 + 40] = 1.0  # 40 deg left, 1 m away: (0.77, 0.64), outside the 0.6 m corridor
+    assert g.free_distance(post) == math.inf
+    post[90 + 30] = 1.0  # 30 deg left: (0.87, 0.5), inside it
+    assert g.free_distance(post) == pytest.approx(0.866 - math.sqrt(0.36 - 0.25), abs=1e-3)
+    assert g.free_distance(np.full(BEAMS - 1, 1.0)) == math.inf  # another beam layout: judges nothing
+
+
+def test_the_speed_it_allows_stops_in_time_and_it_never_limits_turning_or_reversing():
+    cfg = GuardConfig(margin=0.1, decel=1.0, lag_s=0.1)
+    g = CollisionGuard(0.5, FOV, BEAMS, RANGE, cfg)
+    for d in (0.05, 0.3, 1.0, 3.0):
+        v = g.stoppable_speed(d)
+        assert v * cfg.lag_s + v * v / (2 * cfg.decel) == pytest.approx(d)  # lag, then braking: exactly d
+    assert g.limit(0.8, wall_scan(0.65)) == pytest.approx(g.stoppable_speed(0.05))
+    assert g.limit(0.8, wall_scan(0.55)) == 0.0  # already inside the margin: no forward motion
+    assert g.limit(-0.3, wall_scan(0.55)) == -0.3 and g.limit(0.0, wall_scan(0.55)) == 0.0
+    assert g.limit(0.8, wall_scan(4.5)) == 0.8 and g.capped == 2
+    off = CollisionGuard(0.5, FOV, BEAMS, RANGE, GuardConfig(enabled=False))
+    assert off.limit(0.8, wall_scan(0.55)) == 0.8 and off.capped == 0
+    with pytest.raises(ValueError, match="decel"):
+        GuardConfig(decel=0.0)
+
+
+def _drive(guard: GuardConfig, steps: int = 120) -> tuple[float, int]:
+    """A pid leader with its goal beyond a wall at x = 3 m: how close its centre gets to the wall, and how
+    many steps the guard capped. The scan is cast analytically from the true pose each step."""
+    d = scenario_dict(duration=20.0)
+    d["robots"] = [{"id": 0, "role": "leader", "pose": [0.0, 0.0, 0.0]}]
+    d["formation"] = {"leader": 0, "goal": [8.0, 0.0], "slots": {}}
+    d["robot"]["lidar"] = {"beams": BEAMS, "fov_deg": 180, "range": RANGE, "noise_std": 0.0}
+    sc = parse_scenario(d)
+    pl = StepPipeline(sc, 0, policy="pid", config=StepConfig(guard=guard))
+    x = y = yaw = 0.0
+    v = w = 0.0
+    closest = math.inf
+    for k in range(steps):
+        t = k * sc.dt
+        ranges = wall_scan(3.0 - x).tolist()
+        scan = Scan(id=0, stamp=t, step=k, angle_min=-FOV / 2, angle_increment=FOV / (BEAMS - 1), range_max=RANGE,
+                    ranges=ranges)
+        odo = OdomSample(t=t, v=v, w=w, pose=(x, y, yaw))
+        out = pl.step(StepInputs(step=k, t=t, t_run=t, now=t, odometry=(odo,), scan=scan, scan_t=t))
+        v, w = out.v, out.w
+        x, y, yaw = arc_step(x, y, yaw, v, w, sc.dt)
+        closest = min(closest, 3.0 - x)
+    return closest, pl.guard.capped
+
+
+def test_a_policy_that_would_drive_into_a_wall_stops_short_of_it():
+    closest, capped = _drive(GuardConfig(margin=0.1))
+    assert capped > 0
+    assert 0.5 + 0.1 - 0.02 <= closest <= 0.5 + 0.1 + 0.1  # stopped at the margin, not far before it
+    closest_off, capped_off = _drive(GuardConfig(enabled=False))
+    assert capped_off == 0 and closest_off < 0.5  # the same pid without the guard drives into the wall
