@@ -213,3 +213,20 @@ def test_pid_fleet_passes_a_short_generated_course(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert rep["success"] and rep["collisions"] == {"robot_robot": 0, "robot_obstacle": 0}
     assert rep["leader_time_to_goal_s"] < c.scenario["success"]["max_time"] and rep["formation_error_rms_m"] < 1.0
+
+
+@pytest.mark.fleet
+@pytest.mark.parametrize("policy, density", [("drl", "medium"), ("qlearn", "medium"), ("aina", "low")])
+def test_each_avoiding_policy_passes_a_short_generated_course(tmp_path, policy, density):
+    """Each obstacle-avoiding policy on one generated course in the fleet: three robots, a 20 m corridor; at
+    `medium` obstacles anywhere and a wall across it. `aina` steers locally (Deng's immune network toward the
+    goal): this course's cross wall, its gap off the leader's line, traps its leader until the stuck detector
+    gives up, so it runs the `low` course (the held-out table in the README says how often that happens)."""
+    c = course(5, robots=3, density=density, length=20.0)
+    assert c.obstacles >= 2 and (c.passages or density == "low")
+    path = write_scenario(tmp_path / "course.yaml", c.scenario)
+    proc, rep = run_fleet(path, tmp_path / "run", "--policy", policy, "--no-plots", "--no-record", timeout=300)
+    assert proc.returncode == 0, (policy, proc.stderr[-2000:])
+    assert rep["success"] and rep["collisions"] == {"robot_robot": 0, "robot_obstacle": 0}
+    assert rep["min_obstacle_distance_m"] > c.scenario["robot"]["radius"]
+    assert all(r["guard_caps"] is not None for r in rep["robots"].values())

@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..scenario import ScenarioError, parse_scenario
-from .courses import MARGIN, CourseError, _check_seed, _r, unsolvable_reason
+from ..scenario import parse_scenario
+from .courses import MARGIN, CourseError, _check_seed, _r, generate_to_file, unsolvable_reason, write_course
 
 ARRIVAL_STREAM = 0xA77
 ROBOTS = (3, 6)  # robots per task, drawn uniformly
@@ -152,11 +152,8 @@ def generate_arrival_task(seed: int, robots: int | None = None, purpose: str = "
 
 
 def write_task(task: ArrivalTask, path: Path) -> Path:
-    import yaml
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(task.header() + yaml.safe_dump(task.scenario, sort_keys=False))
-    return path
+    """The task's scenario as YAML under its header comment."""
+    return write_course(task, path)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -172,13 +169,9 @@ def main(argv: list[str] | None = None) -> int:
                     help=f"the seed is a held-out one ({HELDOUT_SEEDS.start}..{HELDOUT_SEEDS.stop - 1}): benchmarks only")
     ap.add_argument("--out", type=Path, required=True, help="scenario file to write")
     a = ap.parse_args(argv)
-    try:
-        if a.out.is_dir():
-            raise CourseError(f"--out {a.out}: is a folder (give a file name)")
-        task = generate_arrival_task(a.seed, a.robots, purpose="heldout" if a.heldout else "tune", farthest=a.farthest)
-        write_task(task, a.out)
-    except (CourseError, ScenarioError, OSError) as e:
-        print(f"{ap.prog}: {f'--out {a.out}: {e.strerror or e}' if isinstance(e, OSError) else e}", file=sys.stderr)
+    task = generate_to_file(ap.prog, a.out, lambda: generate_arrival_task(
+        a.seed, a.robots, purpose="heldout" if a.heldout else "tune", farthest=a.farthest))
+    if task is None:
         return 2
     print(f"{a.out}: {task.robots} robots from {', '.join(f'{d:g}' for d in task.distances)} m, {task.blocks} blocks; "
           f"max_time {task.scenario['duration']:g} s")

@@ -403,6 +403,7 @@ def random_scenarios(n: int, first_seed: int = 0, robots: int | None = None, for
 
 
 def write_course(course: Course, path: Path) -> Path:
+    """The course's scenario as YAML under its header comment (an arrival task's too)."""
     import yaml
 
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -574,17 +575,25 @@ def parser(prog: str = "python -m stack.fleet.courses") -> argparse.ArgumentPars
     return ap
 
 
+def generate_to_file(prog: str, out: Path, make):
+    """``make()`` (a :class:`Course` or anything with ``scenario`` and ``header()``), written to ``out``; None
+    after one line on stderr naming what is wrong (the caller exits 2)."""
+    try:
+        if out.is_dir():
+            raise CourseError(f"--out {out}: is a folder (give a file name)")
+        made = make()
+        write_course(made, out)
+        return made
+    except (CourseError, ScenarioError, OSError) as e:
+        print(f"{prog}: {f'--out {out}: {e.strerror or e}' if isinstance(e, OSError) else e}", file=sys.stderr)
+        return None
+
+
 def main(argv: list[str] | None = None, prog: str = "python -m stack.fleet.courses") -> int:
     a = parser(prog).parse_args(argv)
-    if a.out.is_dir():
-        print(f"{prog}: --out {a.out}: is a folder (give a file name)", file=sys.stderr)
-        return 2
-    try:
-        course = generate_course(a.seed, a.robots, a.formation, a.density, a.length,
-                                 purpose="heldout" if a.heldout else "tune")
-        write_course(course, a.out)
-    except (CourseError, ScenarioError, OSError) as e:
-        print(f"{prog}: {f'--out {a.out}: {e.strerror or e}' if isinstance(e, OSError) else e}", file=sys.stderr)
+    course = generate_to_file(prog, a.out, lambda: generate_course(a.seed, a.robots, a.formation, a.density, a.length,
+                                                                   purpose="heldout" if a.heldout else "tune"))
+    if course is None:
         return 2
     print(f"{a.out}: {course.robots} robots, {course.family}, density {course.density}, goal at x = {course.length:g} m, "
           f"{course.obstacles} obstacles, {len(course.passages)} passages; max_time {course.scenario['duration']:g} s")
