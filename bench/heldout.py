@@ -21,6 +21,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -32,7 +33,11 @@ from stack.fleet.arrival_tasks import generate_arrival_task, write_task  # noqa:
 from stack.fleet.courses import DENSITIES, HELDOUT_SEEDS, CourseError, generate_course, write_course  # noqa: E402
 from stack.fleet.jobs import Job, add_engine_args, cli_task, run_jobs  # noqa: E402
 
-POLICIES = ("drl", "aina", "qlearn", "pid")
+POLICIES = ("drl", "aina", "qlearn", "pid", "drl-alone")
+DEFAULT_POLICIES = ("drl", "aina", "qlearn", "pid")
+ALONE = {"drl": {"shield": False}, "guard": {"enabled": False}}
+"""``drl-alone``: Bai's network without the safety layers under it (its action shield, the step's collision
+guard), the hybrid strategy and the stuck detector as they are: the course's own file with these settings."""
 ARRIVAL_POLICIES = ("fuzzy", "fuzzy-lstm")  # Chang 2020, on generated arrival-time tasks (density "arrival")
 COLUMNS = ("policy", "density", "runs", "success", "collision_runs", "robot_robot", "robot_obstacle", "timeouts",
            "errors", "time_to_goal_s", "formation_error_rms_m", "arrival_spread_steps", "min_robot_distance_m",
@@ -72,8 +77,8 @@ def run_all(tasks: list[dict], eng, resume: bool) -> list[dict]:
             rows.append(row(t, json.loads(rep_path.read_text()), "", 0.0))
         else:
             todo.append(t)
-    jobs = [Job(cli_task, (t["file"], t["out"], ("--policy", t["policy"])), f"{t['policy']} {t['density']} {t['seed']}")
-            for t in todo]
+    jobs = [Job(cli_task, (t["file"], t["out"], ("--policy", t["policy"].removesuffix("-alone"))),
+                f"{t['policy']} {t['density']} {t['seed']}") for t in todo]
     return rows + [row(t, *report_of(r)) for t, r in zip(todo, run_jobs(jobs, eng, desc="held-out"))]
 
 
@@ -85,9 +90,15 @@ def plan(courses: int, densities: list[str], policies: list[str], out: Path) -> 
             c = generate_course(seed, density=d, purpose="heldout")
             path = write_course(c, out / "courses" / d / f"{c.scenario['name']}.yaml")
             for p in policies:
-                if p in c.scenario["bench"]["policies"]:
-                    tasks.append({"policy": p, "density": d, "seed": seed, "robots": c.robots, "family": c.family,
-                                  "file": str(path), "out": str(out / "runs" / p / d / str(seed))})
+                alone = p.endswith("-alone")
+                if p.removesuffix("-alone") not in c.scenario["bench"]["policies"]:
+                    continue
+                file = path
+                if alone:  # the same course, the safety layers off
+                    bare = replace(c, scenario={**c.scenario, "robot": {**c.scenario["robot"], **ALONE}})
+                    file = write_course(bare, out / "courses" / d / f"{c.scenario['name']}-alone.yaml")
+                tasks.append({"policy": p, "density": d, "seed": seed, "robots": c.robots, "family": c.family,
+                              "file": str(file), "out": str(out / "runs" / p / d / str(seed))})
     return tasks
 
 
@@ -187,7 +198,9 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--courses", type=int, default=34, help="held-out courses per density (default 34: 102 in all)")
     ap.add_argument("--densities", type=_list(tuple(DENSITIES)), default=list(DENSITIES))
-    ap.add_argument("--policies", type=_list(POLICIES), default=list(POLICIES))
+    ap.add_argument("--policies", type=_list(POLICIES), default=list(DEFAULT_POLICIES),
+                    help=f"comma-separated, of {', '.join(POLICIES)} (default {','.join(DEFAULT_POLICIES)}; drl-alone: "
+                         "the network without its shield and the collision guard)")
     ap.add_argument("--arrival", type=int, default=34, metavar="N",
                     help="held-out arrival-time tasks for fuzzy and fuzzy-lstm (Chang 2020; 0: none)")
     ap.add_argument("--arrival-policies", type=_list(ARRIVAL_POLICIES), default=list(ARRIVAL_POLICIES))
