@@ -1,0 +1,48 @@
+"""bench/heldout.py's plan and table, without running fleets: which runs on which file, in which order, and how
+rows become the table (the runs themselves are `stack-fleet run`, tested elsewhere)."""
+
+from __future__ import annotations
+
+import sys
+
+from conftest import ROOT
+
+sys.path.insert(0, str(ROOT / "bench"))
+
+import heldout  # noqa: E402
+
+from stack.fleet.courses import HELDOUT_START  # noqa: E402
+from stack.scenario import load_scenario  # noqa: E402
+
+
+def test_plan_lists_every_policy_where_its_course_allows_and_drl_alone_on_a_bare_copy(tmp_path):
+    tasks = heldout.plan(2, ["low", "high"], ["drl", "pid", "drl-alone"], tmp_path)
+    got = [(t["policy"], t["density"], t["seed"]) for t in tasks]
+    assert ("pid", "high", HELDOUT_START) not in got and ("pid", "low", HELDOUT_START) in got  # pid: the free lane only
+    assert {t["seed"] for t in tasks} == {HELDOUT_START, HELDOUT_START + 1}
+    alone = next(t for t in tasks if t["policy"] == "drl-alone")
+    plain = next(t for t in tasks if t["policy"] == "drl" and t["density"] == alone["density"] and t["seed"] == alone["seed"])
+    a, p = load_scenario(alone["file"]), load_scenario(plain["file"])
+    assert a.obstacles == p.obstacles and [r.pose for r in a.robots] == [r.pose for r in p.robots]
+    assert all(not r.guard.enabled and not r.settings["drl"].shield for r in a.robots)
+    assert all(r.guard is None for r in p.robots)  # the plain course keeps the defaults: guard and shield on
+    assert alone["out"].endswith(f"drl-alone/{alone['density']}/{alone['seed']}")
+
+
+def test_arrival_tasks_join_the_table_as_their_own_density(tmp_path):
+    tasks = heldout.plan_arrival(2, ["fuzzy", "fuzzy-lstm"], tmp_path)
+    assert [(t["policy"], t["seed"]) for t in tasks] == [("fuzzy", HELDOUT_START), ("fuzzy-lstm", HELDOUT_START),
+                                                        ("fuzzy", HELDOUT_START + 1), ("fuzzy-lstm", HELDOUT_START + 1)]
+    assert all(t["density"] == "arrival" and load_scenario(t["file"]).coordination == "arrival_time" for t in tasks)
+    reps = [{"success": True, "collisions": {"robot_robot": 0, "robot_obstacle": 0}, "arrival_spread_steps": 4},
+            {"success": False, "collisions": {"robot_robot": 1, "robot_obstacle": 0}, "arrival_spread_steps": 40},
+            {"success": True, "collisions": {"robot_robot": 0, "robot_obstacle": 0}, "arrival_spread_steps": 8},
+            None]
+    rows = [heldout.row(t, r, "" if r else "crashed", 1.0) for t, r in zip(tasks, reps)]
+    assert [r["outcome"] for r in rows] == ["success", "collision", "success", "error"]
+    table = heldout.aggregate(rows, ["fuzzy", "fuzzy-lstm"], ["arrival"])
+    fz, lstm = table
+    assert (fz["runs"], fz["success"], fz["arrival_spread_steps"], fz["collision_runs"]) == (2, 1.0, 6.0, 0)
+    assert (lstm["success"], lstm["collision_runs"], lstm["robot_robot"], lstm["errors"]) == (0.0, 1, 1, 1)
+    md = heldout.markdown(table, range(HELDOUT_START, HELDOUT_START + 2), "python bench/heldout.py --arrival 2")
+    assert "| fuzzy | arrival | 2 | 100 % |" in md and "arrival_spread_steps" in md
