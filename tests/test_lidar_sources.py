@@ -184,6 +184,8 @@ def test_rplidar_open_errors_are_one_line(rplidar, tmp_path):
     rig.dev.pty.shutdown()  # the sensor is gone: no answer, named
     mute = rplidar()
     mute.dev.pty._halt.set()
+    mute.dev.pty._thread.join(timeout=2.0)  # gone before we ask (its select could still answer GET_HEALTH under load)
+    assert not mute.dev.pty._thread.is_alive()
     with pytest.raises(LidarError, match="no answer to GET_HEALTH within 0.2 s"):
         RplidarLidar(0, port=mute.dev.driver_params()["port"], open_timeout=0.2).open()
 
