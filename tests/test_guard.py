@@ -87,3 +87,27 @@ def test_a_policy_that_would_drive_into_a_wall_stops_short_of_it():
     assert 0.5 + 0.1 - 0.02 <= closest <= 0.5 + 0.1 + 0.1  # stopped at the margin, not far before it
     closest_off, capped_off = _drive(GuardConfig(enabled=False))
     assert capped_off == 0 and closest_off < 0.5  # the same pid without the guard drives into the wall
+
+
+# --- the stop deadline (stack/agents/cli.py): a control step that outlasts the stop signal ---------------
+def test_a_step_still_busy_after_the_stop_signal_gets_zero_from_beside_it_then_the_process_ends():
+    import threading
+
+    from stack.agents.cli import stop_deadline
+
+    class Driver:
+        stops = 0
+
+        def stop(self):
+            Driver.stops += 1
+
+    class Busy:
+        id, driver = 7, Driver()
+
+    exits: list[int] = []
+    done = threading.Event()
+    stop_deadline(lambda: Busy(), done, grace=0.05, exit_=exits.append)
+    assert Driver.stops == 1 and exits == [0]  # zero velocity first, then the exit
+    done.set()
+    stop_deadline(lambda: Busy(), done, grace=0.05, exit_=exits.append)
+    assert Driver.stops == 1 and exits == [0]  # the agent had returned: nothing to do

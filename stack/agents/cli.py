@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
+import threading
 
 from ..argtypes import fleet_name
 from ..comm.session import ConfigFileError, EndpointError, SessionConfig, SessionError, check_endpoint, open_session
@@ -89,10 +91,37 @@ def _check_flags(a: argparse.Namespace) -> None:
         raise ScenarioError(f"--check-duration: must be in (0, 600] s, got {a.check_duration:g}")
 
 
+STOP_GRACE_S = 3.0
+"""After SIGINT/SIGTERM, how long a control step may still run (a planner mid-plan) before the robot is
+commanded zero from beside it and the process ends (the fleet's own grace is 5-10 s, then SIGKILL)."""
+
+
+def stop_deadline(agent_of, done: threading.Event, grace: float = STOP_GRACE_S, exit_=os._exit) -> None:
+    """Wait ``grace`` s for the agent to return (``done``); if its step is still busy, zero velocity on its
+    driver (thread-safe: the driver base locks each command) and end the process at once (code 0: it was
+    asked to stop, and did, with its zero command)."""
+    if done.wait(grace):
+        return
+    agent = agent_of()
+    log.warning("agent %s: still in a control step %.0f s after the stop signal: zero velocity, exit",
+                getattr(agent, "id", "?"), grace)
+    if agent is not None:
+        agent.driver.stop()
+    for h in logging.getLogger().handlers:
+        h.flush()
+    exit_(0)
+
+
 def main(cfg: AgentConfig) -> int:
     """Run one agent until its stop event, ``steps``, or a signal; zero velocity on every way out."""
+    holder: list[Agent] = []
+    done = threading.Event()
+
     def on_signal(signum, _frame):
         log.info("agent %d: %s: stopping", cfg.robot_id, signal.Signals(signum).name)
+        if not cfg.stop.is_set():
+            threading.Thread(target=stop_deadline, args=(lambda: holder[0] if holder else None, done),
+                             name="stop-deadline", daemon=True).start()
         cfg.stop.set()
 
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -102,8 +131,10 @@ def main(cfg: AgentConfig) -> int:
         with open_session(SessionConfig(mode="client", connect=[cfg.connect], config_file=cfg.zenoh_config,
                                         allow_remote=cfg.allow_remote)) as session:
             agent = Agent(cfg, session)
+            holder.append(agent)
             return agent.run()
     finally:
+        done.set()
         # The robot has its zero command; from here on a SIGINT/SIGTERM (the fleet stopping an agent that is
         # already on its way out, e.g. after the world said "done") must not kill the interpreter's
         # finalisation: Python restores SIG_DFL there for Python-level handlers, but keeps SIG_IGN.
