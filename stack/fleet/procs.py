@@ -79,9 +79,10 @@ def stop_all(procs: list, timeout: float) -> None:
             pr.signal(signal.SIGCONT)
             pr.frozen = False
         pr.signal(signal.SIGTERM)
+    deadline = time.monotonic() + timeout  # one deadline for all: n stragglers cost ``timeout``, not n times it
     for pr in running:
         try:
-            pr.wait(timeout)
+            pr.wait(max(0.0, deadline - time.monotonic()))
         except subprocess.TimeoutExpired:
             pr.signal(signal.SIGKILL)
             pr.wait(5)
