@@ -171,7 +171,7 @@ def test_a_device_fleet_in_lock_step_repeats_itself_to_the_bit(tmp_path):
     path = write_scenario(tmp_path / "mixed.yaml", d)
     reps, tracks = [], []
     for run in ("a", "b"):
-        proc, rep = run_fleet(path, tmp_path / run, "--no-plots", "--no-record")
+        proc, rep = run_fleet(path, tmp_path / run, "--no-plots", "--no-record", "--lockstep-timeout", "10")
         assert rep is not None and not rep["crashed"], proc.stdout + proc.stderr
         bounds = {"late_steps": rep["late_steps"], **{f"{rid}/{k}": r[k] for rid, r in rep["robots"].items()
                                                       for k in ("neighbour_waits_timed_out", "device_odom_late")}}

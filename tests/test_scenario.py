@@ -106,6 +106,7 @@ def test_unparseable_yaml_and_missing_file(tmp_path):
     (["--policy", "nonsense"], "--policy: invalid choice"),
     (["--listen", "tcp/10.0.0.1:7447"], "not a loopback address"),
     (["--duration", "0"], "--duration: expected a number > 0"),
+    (["--lockstep-timeout", "0"], "--lockstep-timeout: must be > 0, got 0"),
 ])
 def test_bad_flags_exit_2(diamond, flags, message):
     proc = run_cli(["stack-fleet", "run", str(diamond), *flags], timeout=60)

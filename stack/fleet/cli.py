@@ -82,6 +82,9 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--external-agents", action="store_true",
                    help="start no agents: they run elsewhere (stack-agent on each robot); wait for their tokens")
     r.add_argument("--wait-agents", type=float, default=60.0, metavar="S", help="how long to wait for every agent (default 60 s)")
+    r.add_argument("--lockstep-timeout", type=float, default=2.0, metavar="S",
+                   help="lock-step: how long (wall) the world waits for an agent's command before it goes on without it "
+                        "(a late step) and stops waiting for that agent (default 2 s)")
     r.add_argument("--fleet", type=fleet_name, help="fleet name, the key prefix stack/<fleet>/ (default: one per run)")
     r.add_argument("--zenoh-config", metavar="FILE", help="zenoh json5 config (deploy/: TLS, access control) for the fleet's sessions")
     r.add_argument("--allow-remote", action="store_true", help="allow router endpoints off loopback (multi-host)")
@@ -170,6 +173,8 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
         raise ScenarioError("--external-agents: faults (--kill/--freeze/--restart) need agents this command started")
     if a.wait_agents <= 0:
         raise ScenarioError(f"--wait-agents: must be > 0, got {a.wait_agents:g}")
+    if not a.lockstep_timeout > 0:
+        raise ScenarioError(f"--lockstep-timeout: must be > 0, got {a.lockstep_timeout:g}")
     if a.zenoh_config is not None and not Path(a.zenoh_config).is_file():
         raise ScenarioError(f"--zenoh-config {a.zenoh_config}: no such file")
     if a.zenoh_config is not None:
@@ -192,7 +197,8 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
     return FleetConfig(scenario=sc, out=out, realtime=a.realtime, gui=a.gui, listen=a.listen, faults=faults,
                        device_faults=a.device_fault, can_log=a.can_log,
                        progress=not a.no_progress, plots=not a.no_plots, connect=a.connect,
-                       external_agents=a.external_agents, wait_agents_s=a.wait_agents, fleet=a.fleet,
+                       external_agents=a.external_agents, wait_agents_s=a.wait_agents,
+                       lockstep_timeout_s=a.lockstep_timeout, fleet=a.fleet,
                        zenoh_config=a.zenoh_config, allow_remote=a.allow_remote, record=not a.no_record, viz=a.viz)
 
 

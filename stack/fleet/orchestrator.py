@@ -74,6 +74,8 @@ class FleetConfig:
     """The agents run elsewhere (their own machines): start none, wait for their liveliness tokens."""
     wait_agents_s: float = 60.0
     """How long to wait for every expected agent's token."""
+    lockstep_timeout_s: float = 2.0
+    """Lock-step: how long (wall) the world waits for an agent's command before it takes the step without it."""
     zenoh_config: str | None = None
     """A zenoh json5 file (deploy/: TLS, access control) for our own session and the world's."""
     allow_remote: bool = False
@@ -225,6 +227,7 @@ class Fleet:
         cfg = self.cfg
         argv = [sys.executable, "-m", "stack.sim_bridge", "--scenario", str(self.resolved), "--connect", self.endpoint,
                 "--fleet", self.fleet, "--out", str(self.out), "--wait-agents", f"{cfg.wait_agents_s:g}",
+                "--lockstep-timeout", f"{cfg.lockstep_timeout_s:g}",
                 *self._remote, *self._zconf]
         if cfg.realtime:
             argv.append("--realtime")
