@@ -82,11 +82,12 @@ def run_all(tasks: list[dict], eng, resume: bool) -> list[dict]:
     return rows + [row(t, *report_of(r)) for t, r in zip(todo, run_jobs(jobs, eng, desc="held-out"))]
 
 
-def plan(courses: int, densities: list[str], policies: list[str], out: Path) -> list[dict]:
-    """Write the held-out courses under OUT/courses/<density>/ and list the runs."""
+def plan(courses: int, densities: list[str], policies: list[str], out: Path, skip: int = 0) -> list[dict]:
+    """Write the held-out courses (seeds ``skip`` on into the held-out range) under OUT/courses/<density>/ and list
+    the runs."""
     tasks = []
     for d in densities:
-        for seed in HELDOUT_SEEDS[:courses]:
+        for seed in HELDOUT_SEEDS[skip:skip + courses]:
             c = generate_course(seed, density=d, purpose="heldout")
             path = write_course(c, out / "courses" / d / f"{c.scenario['name']}.yaml")
             for p in policies:
@@ -102,10 +103,10 @@ def plan(courses: int, densities: list[str], policies: list[str], out: Path) -> 
     return tasks
 
 
-def plan_arrival(tasks_n: int, policies: list[str], out: Path) -> list[dict]:
+def plan_arrival(tasks_n: int, policies: list[str], out: Path, skip: int = 0) -> list[dict]:
     """Write the held-out arrival-time tasks under OUT/courses/arrival/ and list the runs (Chang 2020's policies)."""
     tasks = []
-    for seed in HELDOUT_SEEDS[:tasks_n]:
+    for seed in HELDOUT_SEEDS[skip:skip + tasks_n]:
         t = generate_arrival_task(seed, purpose="heldout")
         path = write_task(t, out / "courses" / "arrival" / f"{t.scenario['name']}.yaml")
         for p in policies:
@@ -204,16 +205,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--arrival", type=int, default=34, metavar="N",
                     help="held-out arrival-time tasks for fuzzy and fuzzy-lstm (Chang 2020; 0: none)")
     ap.add_argument("--arrival-policies", type=_list(ARRIVAL_POLICIES), default=list(ARRIVAL_POLICIES))
+    ap.add_argument("--first-seed", type=int, default=HELDOUT_SEEDS.start, metavar="S",
+                    help=f"the first held-out seed (default {HELDOUT_SEEDS.start}); a seed once reported is spent: a table "
+                         "after a change takes the seeds after it")
     ap.add_argument("--resume", action="store_true", help="keep the runs that already have a report.json")
     ap.add_argument("--out", type=Path, default=Path("runs/heldout"))
     add_engine_args(ap)
     a = ap.parse_args(argv)
     eng = engine(ap, a)
-    if not 0 <= a.courses <= len(HELDOUT_SEEDS) or not 0 <= a.arrival <= len(HELDOUT_SEEDS) or not a.courses + a.arrival:
-        ap.error(f"--courses {a.courses}, --arrival {a.arrival}: expected 0..{len(HELDOUT_SEEDS)} each, not both 0")
+    skip = a.first_seed - HELDOUT_SEEDS.start
+    left = len(HELDOUT_SEEDS) - skip
+    if a.first_seed not in HELDOUT_SEEDS:
+        ap.error(f"--first-seed {a.first_seed}: expected a held-out seed, {HELDOUT_SEEDS.start}..{HELDOUT_SEEDS.stop - 1}")
+    if not 0 <= a.courses <= left or not 0 <= a.arrival <= left or not a.courses + a.arrival:
+        ap.error(f"--courses {a.courses}, --arrival {a.arrival}: expected 0..{left} each from seed {a.first_seed}, not both 0")
     try:
-        tasks = plan(a.courses, a.densities, a.policies, a.out.resolve())
-        tasks += plan_arrival(a.arrival, a.arrival_policies, a.out.resolve())
+        tasks = plan(a.courses, a.densities, a.policies, a.out.resolve(), skip)
+        tasks += plan_arrival(a.arrival, a.arrival_policies, a.out.resolve(), skip)
         tasks.sort(key=lambda t: t["seed"])  # seed-major: a run cut short leaves whole seeds; --resume goes on
     except CourseError as e:
         print(f"heldout: {e}", file=sys.stderr)
@@ -224,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     rows.sort(key=lambda r: (policies.index(r["policy"]), densities.index(r["density"]), r["seed"]))
     table = aggregate(rows, policies, densities)
     command = "python bench/heldout.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    seeds = HELDOUT_SEEDS[: max(a.courses, a.arrival)]
+    seeds = HELDOUT_SEEDS[skip:skip + max(a.courses, a.arrival)]
     md = markdown(table, seeds, command) + f"wall time {time.perf_counter() - t0:.0f} s, {eng.jobs} job(s), engine {eng.engine}\n"
     a.out.mkdir(parents=True, exist_ok=True)
     (a.out / "heldout.md").write_text(md)

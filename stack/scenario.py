@@ -148,6 +148,9 @@ class RobotConfig:
     guard: Any = None
     """``robot.guard`` resolved (``stack.agents.guard.GuardConfig``: margin, decel, lag_s, enabled): the collision
     guard under every policy; None where the scenario gives none (the defaults, on)."""
+    stuck: Any = None
+    """``robot.stuck`` resolved (``stack.agents.livelock.StuckConfig``: the stuck detector's window and tries, and its
+    ``detour``, ``stack.agents.detour.DetourConfig``); None where the scenario gives none (the defaults, on)."""
     ros_graph: Any = None
     """``robot.ros_graph`` resolved (``stack.agents.ros_graph.RosGraphConfig``): the agent's estimate, slot and goal
     as ROS 2 topics (docs/ros2.md); None where the scenario gives none (off)."""
@@ -382,7 +385,7 @@ def _max(rd: "_Reader", v: int, hi: int, path: str) -> int:
 
 
 _CORE_KEYS = {"radius", "v_max", "w_max", "lidar", "odom_noise", "imu_noise", "fix", "comm_range", "cmd_timeout", "base",
-              "policy", "driver", "device", "odom_origin", "ros_graph", "guard"}
+              "policy", "driver", "device", "odom_origin", "ros_graph", "guard", "stuck"}
 
 ODOM_ORIGINS = ("auto", "site", "boot", "boot-position", "first")
 
@@ -417,16 +420,22 @@ def _robot_fields(rd: _Reader, d: dict, path: str, base: dict[str, Any]) -> dict
     if "ros_graph" in d:
         out["ros_graph"] = _ros_graph(rd, d["ros_graph"], f"{path}.ros_graph", out.get("ros_graph"))
     if "guard" in d:
-        out["guard"] = _guard(rd, d["guard"], f"{path}.guard", out.get("guard"))
+        out["guard"] = _safety(rd, "guard", d["guard"], f"{path}.guard", out.get("guard"))
+    if "stuck" in d:
+        out["stuck"] = _safety(rd, "stuck", d["stuck"], f"{path}.stuck", out.get("stuck"))
     return out
 
 
-def _guard(rd: _Reader, value: Any, path: str, prev):
-    """``robot.guard`` (``stack.agents.guard.GuardConfig``) over the defaults' (``prev``)."""
-    from .agents.guard import GuardConfig
+def _safety(rd: _Reader, key: str, value: Any, path: str, prev):
+    """``robot.guard`` (``stack.agents.guard.GuardConfig``) or ``robot.stuck`` (``stack.agents.livelock.StuckConfig``)
+    over the defaults' (``prev``)."""
+    if key == "guard":
+        from .agents.guard import GuardConfig as cls
+    else:
+        from .agents.livelock import StuckConfig as cls
 
     try:
-        return settings.read(GuardConfig, value, path, prev)
+        return settings.read(cls, value, path, prev)
     except settings.SettingError as e:
         raise rd.fail(e.path, e.what) from None
 

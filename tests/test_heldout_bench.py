@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import sys
 
+import pytest
 from conftest import ROOT
 
 sys.path.insert(0, str(ROOT / "bench"))
@@ -46,3 +47,16 @@ def test_arrival_tasks_join_the_table_as_their_own_density(tmp_path):
     assert (lstm["success"], lstm["collision_runs"], lstm["robot_robot"], lstm["errors"]) == (0.0, 1, 1, 1)
     md = heldout.markdown(table, range(HELDOUT_START, HELDOUT_START + 2), "python bench/heldout.py --arrival 2")
     assert "| fuzzy | arrival | 2 | 100 % |" in md and "arrival_spread_steps" in md
+
+
+def test_a_later_table_takes_the_seeds_after_the_spent_ones(tmp_path, capsys):
+    tasks = heldout.plan(2, ["low"], ["pid"], tmp_path, skip=34)
+    assert [t["seed"] for t in tasks] == [HELDOUT_START + 34, HELDOUT_START + 35]
+    assert [t["seed"] for t in heldout.plan_arrival(1, ["fuzzy"], tmp_path, skip=34)] == [HELDOUT_START + 34]
+    for flags, msg in ((["--first-seed", "5"], "--first-seed 5: expected a held-out seed, 1000000..1000999"),
+                       (["--first-seed", "1000990", "--courses", "20"], "expected 0..10 each from seed 1000990")):
+        with pytest.raises(SystemExit) as e:
+            heldout.main([*flags, "--out", str(tmp_path / "x")])
+        assert e.value.code == 2
+        err = capsys.readouterr().err
+        assert msg in err, err

@@ -1,4 +1,5 @@
-"""No livelock (issue 19): the stuck detector on a hand-built pinned-robot scene, and the bounded hold."""
+"""No livelock (issue 19): the stuck detector on a hand-built pinned-robot scene, the planned detour round a cross
+wall whose gap lies off the robot's line, and the bounded hold."""
 
 import math
 from types import SimpleNamespace
@@ -6,6 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from stack.agents.decision import DecisionLayer, Neighbour
+from stack.agents.detour import DetourConfig
 from stack.agents.livelock import HoldConfig, StuckConfig, clear_side_waypoint
 from stack.scenario import FormationConfig, Slot
 from stack.train.drlworld import obstacle_distance, ray_cast
@@ -20,6 +22,9 @@ BOXES = np.array([[2.0, -1.5, 4.0, 0.1, 0.0]])
 FORMATION = FormationConfig(leader=0, goal=(30.0, 0.0), slots={1: Slot(L=3.0, psi=math.pi)})
 LEADER = (11.0, 0.0)  # standing still: the slot is (8, 0)
 SLOT = (8.0, 0.0)
+
+
+BLIND = DetourConfig(enabled=False)  # the blind escapes alone (no plan on the scan memory)
 
 
 def layer(**stuck) -> DecisionLayer:
@@ -45,7 +50,7 @@ def test_the_scene_pins_the_robot():
 
 
 def test_a_pinned_robot_is_stuck_within_the_window_and_escapes_to_the_clear_side():
-    dl = layer()
+    dl = layer(detour=BLIND)
     t, first = 0.0, None
     while t < 12.0 and first is None:
         d = step(dl, t, 0.0, 0.0)
@@ -71,7 +76,7 @@ def test_a_pinned_robot_is_stuck_within_the_window_and_escapes_to_the_clear_side
 
 def test_an_escape_that_frees_the_robot_is_counted():
     """A crude robot: 0.5 m/s straight at its decision's target unless that would bring it into an obstacle."""
-    dl = layer()
+    dl = layer(detour=BLIND)
     x, y, t = 0.0, 0.0, 0.0
     for _ in range(900):
         d = step(dl, t, x, y)
@@ -100,7 +105,7 @@ def test_a_robot_at_its_target_is_not_stuck_and_reaching_it_ends_the_episode():
     dl = layer(at_target=1.0)
     for k in range(200):
         assert step(dl, k * DT, SLOT[0], 0.6).situation != "escape"  # 0.6 m from its slot, standing: fine
-    dl = layer(escape_time=0.5, max_tries=5)
+    dl = layer(escape_time=0.5, max_tries=5, detour=BLIND)
     for k in range(120):
         step(dl, k * DT, 0.0, 0.0)
     assert dl.livelock()["open"] == 1
@@ -152,7 +157,7 @@ def test_the_report_sums_the_agents_livelock_counters():
     """stack.fleet.metrics.livelock over the agents' Diag.stuck (what DecisionLayer.livelock() returns)."""
     from stack.fleet.metrics import diag_fields, livelock
 
-    follower = layer()
+    follower = layer(detour=BLIND)
     for k in range(500):  # pinned: stuck at 8 s, tries at 8, 20, 32 s, gave up at 44 s
         step(follower, round(k * DT, 6), 0.0, 0.0)
     leader = DecisionLayer(0, "leader", FORMATION, goal=None, radius=RADIUS, comm_range=10.0, scan_range=5.0, dt=DT,
@@ -183,3 +188,92 @@ def test_a_leader_held_by_the_static_eq_20_is_not_stuck_but_a_pinned_leader_is()
             far = Neighbour(1, "follower", -d_far, 0.0, 0.0, 0.0, 0.0, t, k)
             seen.add(dl.decide(pose, t, {1: far}, s[None], float(s.min()), t_run=t).situation)
         assert ("escape" in seen) == stuck, (d_far, seen)
+
+
+# a cross wall at x = 3 whose gap (y 4.0..6.6, 2.6 m) lies 4 m off the line from the robot (0, 0) to its slot (8, 0)
+CROSS = np.array([[3.0, -4.0, 0.1, 8.0, 0.0], [3.0, 9.3, 0.1, 2.7, 0.0]])  # [cx, cy, hx, hy, yaw]
+NONE = np.array([[100.0, 100.0, 0.1]])  # no cylinder in reach (the ray caster wants one)
+
+
+def drive(dl: DecisionLayer, boxes: np.ndarray, steps: int, x=0.0, y=0.0):
+    """The crude robot (0.5 m/s straight at its decision's target, turning on the spot, stopped short of anything)
+    against ``boxes``; the scan turns with its heading. Returns the final position and the situations seen."""
+    yaw, seen = 0.0, []
+    for k in range(steps):
+        t = round(k * DT, 6)
+        s = ray_cast(np.array(x), np.array(y), np.array(yaw), NONE, boxes, BEAMS, RADIUS + 0.01, 5.0)
+        leader = Neighbour(0, "leader", *LEADER, 0.0, 0.0, 0.0, t, k)
+        d = dl.decide(SimpleNamespace(x=x, y=y, yaw=yaw, v=0.0, w=0.0), t, {0: leader}, s[None], float(s.min()), t_run=t)
+        seen.append(d.situation)
+        tx, ty = d.target
+        if math.hypot(tx - x, ty - y) < 0.05:
+            continue
+        yaw = math.atan2(ty - y, tx - x)
+        nx, ny = x + 0.5 * DT * math.cos(yaw), y + 0.5 * DT * math.sin(yaw)
+        if obstacle_distance(np.array(nx), np.array(ny), NONE, boxes) > RADIUS + 0.02:
+            x, y = nx, ny
+    return x, y, seen
+
+
+def test_the_planned_detour_finds_the_gap_the_blind_escapes_miss():
+    """Pressed against the cross wall, the blind escapes (1.5 m, then 3 m either side) never reach the gap 4 m
+    off the line; the plan on what the lidar has seen runs along the wall, sees its end, and goes through."""
+    x, y, _ = drive(layer(detour=BLIND), CROSS, 1200)
+    assert x < 3.0  # still on the near side of the wall after 120 s
+    dl = layer()
+    x, y, seen = drive(dl, CROSS, 1200)
+    assert math.hypot(x - SLOT[0], y - SLOT[1]) < 1.0, (x, y)  # at its slot
+    ll = dl.livelock()
+    assert ll["episodes"] >= 1 and ll["plan"] >= 1 and ll["gave_up"] == 0
+    assert obstacle_distance(np.array(x), np.array(y), NONE, CROSS) > RADIUS
+
+
+def test_the_plan_runs_on_the_memory_round_what_was_seen():
+    """The memory keeps the wall's returns (world frame), not the neighbours'; the path keeps the body off it."""
+    from stack.agents.detour import DetourPlanner, ScanMemory
+
+    mem = ScanMemory(0.25)
+    for yaw in (math.pi / 2, 0.0, -math.pi / 2):  # a look round from (2, 0): the wall, the lower gap edge
+        s = ray_cast(np.array(2.0), np.array(0.0), np.array(yaw), NONE, CROSS, BEAMS, RADIUS + 0.01, 5.0)
+        mem.add(2.0, 0.0, yaw, s, math.pi, 5.0, ignore=[(2.0, 3.0)])
+    cells = np.array(list(mem.cells)) * 0.25
+    assert len(cells) > 20 and np.all(np.abs(cells[:, 0] + 0.125 - 2.9) < 0.3)  # every cell on the wall's face
+    pl = DetourPlanner(DetourConfig(), mem, RADIUS)
+    assert pl.plan(0.0, (2.4, 0.0), SLOT) and not pl.clear_line((2.4, 0.0), SLOT)
+    path = np.array(pl.path)
+    assert np.all(path[:, 1] >= -1e-9) or np.all(path[:, 1] <= 1e-9)  # one way round the wall
+    through = path[np.abs(path[:, 0] - 3.0) < 0.2]
+    assert np.all(np.abs(through[:, 1]) > 4.0)  # it crosses x = 3 beyond the wall's seen end only
+    wx, wy = pl.waypoint((2.4, 0.0))
+    assert math.isclose(math.hypot(wx - 2.4, wy), 2.0, abs_tol=0.3)  # lookahead along the path
+    assert pl.clear_line((6.0, 2.0), SLOT)  # beyond the wall: nothing in the way
+
+
+def test_a_leader_no_hold_slows_is_judged_even_with_a_follower_far():
+    """aina and qlearn drive themselves (no eq. (20) hold slows them): their leader pinned with a follower 9 m off
+    (a slot 8 m out keeps it there) is stuck, not waiting."""
+    dl = DecisionLayer(0, "leader", FORMATION, goal=None, radius=RADIUS, comm_range=10.0, scan_range=5.0, dt=DT)
+    dl.static_hold = False
+    pose = SimpleNamespace(x=0.0, y=0.0, yaw=0.0, v=0.0, w=0.0)
+    s = scan_at(0.0, 0.0, 0.0)
+    seen = {dl.decide(pose, k * DT, {1: Neighbour(1, "follower", -9.0, 0.0, 0.0, 0.0, 0.0, k * DT, k)}, s[None],
+                      float(s.min()), t_run=k * DT).situation for k in range(120)}
+    assert "escape" in seen
+
+
+def test_the_memory_forgets_nothing_seen_and_the_neighbours():
+    """A lidar's no-return value with its noise (a little under range_max) and the returns of known robots are not
+    obstacles to plan round; a real return is."""
+    from stack.agents.detour import ScanMemory
+
+    mem = ScanMemory(0.25)
+    rng = np.random.default_rng(1)
+    mem.add(0.0, 0.0, 0.0, np.clip(5.0 + rng.normal(0, 0.01, 180), 0, 5.0), math.pi, 5.0)
+    assert not mem.cells
+    ranges = np.full(180, 5.0)
+    ranges[85:95] = 2.0  # something 2 m ahead
+    mem.add(0.0, 0.0, 0.0, ranges, math.pi, 5.0, ignore=[(2.2, 0.0)])
+    assert not mem.cells  # a neighbour stands there
+    mem.add(0.0, 0.0, 0.0, ranges, math.pi, 5.0)
+    cells = np.array(list(mem.cells)) * 0.25
+    assert len(cells) and np.all(np.abs(np.hypot(cells[:, 0] + 0.125, cells[:, 1] + 0.125) - 2.0) < 0.25)

@@ -14,8 +14,8 @@ d_rmin/d_rmax come from the neighbours' reported states (as delivered by the rad
 model); d_omin from the lidar, leaving out beams that end on a known neighbour.
 
 No livelock (ours, :mod:`.livelock`): a robot whose distance to its target has not fallen for a
-window is stuck and drives to an escape / detour waypoint for a bounded time (situation
-``escape``); :meth:`DecisionLayer.hold_speed` is eq. (20) with the connectivity hold bounded in time.
+window is stuck and drives, for a bounded time, along a path planned on the memory of its scans
+(:mod:`.detour`) or to a blind escape / detour waypoint (situation ``escape``); :meth:`DecisionLayer.hold_speed` is eq. (20) with the connectivity hold bounded in time.
 :meth:`DecisionLayer.livelock` sums both up for the agent's diag.
 """
 
@@ -104,10 +104,11 @@ class DecisionLayer:
         self.centre_heading = centre_heading
         self.counts: dict[str, int] = {s: 0 for s in SITUATIONS}
         self.fov = fov
-        self.stuck = StuckDetector(stuck)
+        self.stuck = StuckDetector(stuck, radius)
         self.hold = HoldGuard(hold)
         self.farthest: tuple[int, float] | None = None  # (id, distance) of the farthest neighbour (the hold's)
         self.target: tuple[float, float] | None = None  # the last decision's formation target, before any escape
+        self.static_hold = True  # False: no hold slows this leader at all (a policy that drives itself: aina, qlearn)
 
     def decide(self, pose, now: float, neighbours: dict[int, Neighbour], scans: np.ndarray, d_omin: float,
                t_run: float | None = None, dead: set[int] | frozenset[int] = frozenset()) -> Decision:
@@ -131,8 +132,10 @@ class DecisionLayer:
             return self._count(dec)
         sc = np.asarray(scans, float)
         newest = sc[-1] if sc.ndim == 2 and len(sc) else sc.ravel()
+        self.stuck.remember(pose.x, pose.y, pose.yaw, newest, self.fov, self.scan_range,
+                            [n.predicted(now) for n in neighbours.values()])
         wp = self.stuck.update(t_run, pose.x, pose.y, pose.yaw, dec.obs.d_g, newest, fov=self.fov,
-                               range_max=self.scan_range, radius=self.radius)
+                               range_max=self.scan_range, radius=self.radius, target=dec.target)
         if wp is not None:
             dec = Decision("escape", True, obs(wp), wp, dec.d_rmin, dec.d_rmax, dec.d_omin)
         return self._count(dec)
@@ -148,8 +151,11 @@ class DecisionLayer:
 
     def _held(self, d_rmax: float) -> bool:
         """Whether the leader's hold slows it on purpose (last step). An agent that never calls :meth:`hold_speed`
-        (the static :meth:`leader_speed` alone) holds from the default hold's start (0.8 d_com) on."""
-        return self.hold.holding if self.hold.used else d_rmax >= DEFAULT_HOLD_START * self.comm_range
+        (the static :meth:`leader_speed` alone) holds from the default hold's start (0.8 d_com) on, unless
+        ``static_hold`` is off (a policy that drives itself, which no hold slows)."""
+        if self.hold.used:
+            return self.hold.holding
+        return self.static_hold and d_rmax >= DEFAULT_HOLD_START * self.comm_range
 
     def _situation(self, pose, now, neighbours, view, obs, d_omin, t_run, dead) -> Decision:
         """Section IV's situations (Algorithm 2)."""

@@ -8,8 +8,13 @@ newest scan with more clearance (as far as its body can drive straight there, at
 ``escape_distance``: :func:`clear_side_waypoint`),
 for at most ``escape_time`` seconds or until it is within ``waypoint_tol`` of it; then it resumes.
 The first try is an ``escape`` (short, to the clearer side), later ones ``detour``s (twice as far,
-alternating sides). The episode ends, counted by what resolved it, when the distance falls by
-``min_progress`` from where it stood after the last try (``escape`` / ``detour``), when the robot
+alternating sides). Before each of those, where the robot's memory of its scans (:mod:`.detour`) holds
+something between it and its target and a way round it, the try is a ``plan``: the robot follows a grid
+path on that memory (re-planned as it sees more; the step drives it with the PID tracker, since the policy's own
+steering is what left it stuck) until the straight way to its target is wide open, for at most
+``detour.max_time`` seconds; so tries alternate plan, blind, plan. The episode ends, counted by what
+resolved it, when the distance falls by ``min_progress`` from where it stood after the last try (``plan``,
+``escape`` / ``detour``), when the robot
 reaches its target (``target``), or after ``max_tries`` tries without progress (``gave_up``; the
 robot goes on under its controller and may be flagged again one window later).
 
@@ -23,11 +28,14 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-RESOLUTIONS = ("escape", "detour", "target", "gave_up")
+from ..settings import check, rule
+from .detour import DetourConfig, DetourPlanner, ScanMemory
+
+RESOLUTIONS = ("escape", "detour", "target", "gave_up", "plan")
 MAX_EVENTS = 20  # give-ups and episodes kept for the diag (the counters count them all)
 
 
@@ -37,22 +45,27 @@ class StuckConfig:
 
     enabled: bool = True
     """False: no detection, no escapes (the paper's decision layer alone)."""
-    window: float = 8.0
+    window: float = field(default=8.0, metadata=rule("> 0"))
     """T [s]: the window over which progress is judged."""
-    min_progress: float = 0.3
+    min_progress: float = field(default=0.3, metadata=rule(">= 0"))
     """X [m]: the distance to the target must fall by at least this over the window."""
-    min_travel: float = 1.0
+    min_travel: float = field(default=1.0, metadata=rule(">= 0"))
     """[m] a robot whose net displacement over the window is at least this is moving, not stuck."""
-    at_target: float = 1.0
+    at_target: float = field(default=1.0, metadata=rule(">= 0"))
     """[m] a robot this near its target is not stuck (and a stuck episode ends with ``target``)."""
-    escape_time: float = 4.0
+    escape_time: float = field(default=4.0, metadata=rule("> 0"))
     """[s] the longest one escape (or detour) drives to its waypoint."""
-    escape_distance: float = 1.5
+    escape_distance: float = field(default=1.5, metadata=rule("> 0"))
     """[m] the farthest an escape waypoint lies (a detour: twice this)."""
-    waypoint_tol: float = 0.4
+    waypoint_tol: float = field(default=0.4, metadata=rule("> 0"))
     """[m] a waypoint this near is reached (the try ends early)."""
-    max_tries: int = 3
-    """escapes + detours per stuck episode before giving up."""
+    max_tries: int = field(default=3, metadata=rule(">= 0"))
+    """plans + escapes + detours per stuck episode before giving up."""
+    detour: DetourConfig = field(default_factory=DetourConfig)
+    """the planned detour on the memory of the robot's scans (:mod:`.detour`)."""
+
+    def __post_init__(self):
+        check(self)
 
 
 @dataclass(frozen=True)
@@ -101,8 +114,12 @@ def clear_side_waypoint(x: float, y: float, yaw: float, scan: np.ndarray, fov: f
 class StuckDetector:
     """Per robot: feed :meth:`update` every control step; it says where to go while escaping."""
 
-    def __init__(self, cfg: StuckConfig | None = None):
+    def __init__(self, cfg: StuckConfig | None = None, radius: float = 0.5):
         self.cfg = cfg or StuckConfig()
+        dc = self.cfg.detour
+        self.memory = ScanMemory(dc.resolution, dc.max_cells)
+        self.planner = DetourPlanner(dc, self.memory, radius)
+        self.plan_until = 0.0
         self.samples: deque[tuple[float, float, float, float]] = deque()  # (t, d, x, y)
         self.episodes = 0
         self.resolved = dict.fromkeys(RESOLUTIONS, 0)
@@ -135,14 +152,25 @@ class StuckDetector:
     def _event(self, e: dict) -> None:
         self.events = (self.events + [e])[-MAX_EVENTS:]
 
+    def remember(self, x: float, y: float, yaw: float, scan: np.ndarray, fov: float, range_max: float,
+                 robots: list[tuple[float, float]] = ()) -> None:
+        """Add a scan taken at (x, y, yaw) to the memory the planned detour uses (not the ``robots``' returns)."""
+        if self.cfg.enabled and self.cfg.detour.enabled:
+            self.memory.add(x, y, yaw, scan, fov, range_max, robots)
+
     def update(self, t: float, x: float, y: float, yaw: float, d: float, scan: np.ndarray, *, fov: float,
-               range_max: float, radius: float) -> tuple[float, float] | None:
-        """One control step at (x, y, yaw), ``d`` from the target: the escape waypoint to drive to, or None."""
+               range_max: float, radius: float, target: tuple[float, float] | None = None) -> tuple[float, float] | None:
+        """One control step at (x, y, yaw), ``d`` from ``target``: the waypoint to drive to, or None."""
         c = self.cfg
         if not c.enabled:
             return None
         if self.waypoint is not None:  # escaping
-            if t < self.until and math.hypot(x - self.waypoint[0], y - self.waypoint[1]) > c.waypoint_tol:
+            if self.open is not None and self.open["kind"] == "plan":
+                wp = self._follow(t, (x, y), target)
+                if wp is not None:
+                    self.waypoint = wp
+                    return wp
+            elif t < self.until and math.hypot(x - self.waypoint[0], y - self.waypoint[1]) > c.waypoint_tol:
                 return self.waypoint
             self.waypoint = None
             self.samples.clear()  # the progress window starts where the try left the robot
@@ -159,24 +187,58 @@ class StuckDetector:
             return None
         if not self.stuck():
             return None
-        return self._try(t, x, y, yaw, scan, fov, range_max, radius)
+        return self._try(t, x, y, yaw, scan, fov, range_max, radius, target)
 
-    def _try(self, t, x, y, yaw, scan, fov, range_max, radius) -> tuple[float, float] | None:
-        """Stuck: open an episode if none is open, then the next escape / detour (or give up)."""
+    def _follow(self, t: float, me: tuple[float, float], target) -> tuple[float, float] | None:
+        """A planned detour under way: the next waypoint on the path (re-planned every ``replan_s``), or None when
+        it is over (time is up, no path any more, or the straight way to the target is open)."""
+        dc = self.cfg.detour
+        if t >= self.plan_until or target is None:
+            return None
+        if t - self.planner.planned_at >= dc.replan_s:
+            if not self.planner.plan(t, me, target) or self.planner.open_line(me, target):
+                return None
+        return self.planner.waypoint(me)
+
+    def _plan(self, t: float, me: tuple[float, float], target) -> tuple[float, float] | None:
+        """The first waypoint of a planned detour, or None where there is nothing to plan round (the straight way
+        to the target is open in the memory) or no way round it."""
+        if not self.cfg.detour.enabled or target is None:
+            return None
+        ok = self.planner.plan(t, me, target)
+        if not ok or self.planner.open_line(me, target):
+            return None
+        self.plan_until = t + self.cfg.detour.max_time
+        return self.planner.waypoint(me)
+
+    def _try(self, t, x, y, yaw, scan, fov, range_max, radius, target=None) -> tuple[float, float] | None:
+        """Stuck: open an episode if none is open, then the next try: a plan where one helps (first, then every
+        other try), else the next escape / detour (or give up)."""
         c = self.cfg
         if self.open is None:
             self.episodes += 1
-            self.open = {"start": t, "tries": 0, "side": 0, "kind": "escape"}
+            self.open = {"start": t, "tries": 0, "side": 0, "kind": "escape", "blind": 0}
             self._event({"t": round(t, 2), "event": "stuck", "d": round(self.samples[-1][1], 2)})
         o = self.open
         if o["tries"] >= c.max_tries:
             self._close(t, "gave_up")
             return None
-        kind = "escape" if o["tries"] == 0 else "detour"
-        reach = c.escape_distance * (1 if kind == "escape" else 2)
-        side = 0 if o["tries"] == 0 else -o["side"]  # a detour tries the other side from the last try
-        self.waypoint, o["side"] = clear_side_waypoint(x, y, yaw, scan, fov, range_max, radius, reach, side)
         o["tries"] += 1
+        if o["kind"] != "plan":
+            wp = self._plan(t, (x, y), target)
+            if wp is not None:
+                self.waypoint, o["kind"] = wp, "plan"
+                return wp
+        return self._blind(t, x, y, yaw, scan, fov, range_max, radius)
+
+    def _blind(self, t, x, y, yaw, scan, fov, range_max, radius) -> tuple[float, float]:
+        """The next escape (the first blind try) or detour (later ones, the other side from the last)."""
+        c, o = self.cfg, self.open
+        kind = "escape" if o["blind"] == 0 else "detour"
+        reach = c.escape_distance * (1 if kind == "escape" else 2)
+        side = 0 if o["blind"] == 0 else -o["side"]  # a detour tries the other side from the last try
+        self.waypoint, o["side"] = clear_side_waypoint(x, y, yaw, scan, fov, range_max, radius, reach, side)
+        o["blind"] += 1
         o["kind"] = kind
         self.until = t + c.escape_time
         return self.waypoint
@@ -184,6 +246,12 @@ class StuckDetector:
     @property
     def escaping(self) -> bool:
         return self.waypoint is not None
+
+    @property
+    def planned(self) -> bool:
+        """Whether the robot is following a planned detour (the step drives it with the path tracker: a policy's own
+        steering is what left it stuck)."""
+        return self.waypoint is not None and self.open is not None and self.open["kind"] == "plan"
 
 
 class HoldGuard:

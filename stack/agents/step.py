@@ -151,7 +151,9 @@ class StepPipeline:
         self.pid = make_policy("pid", replace(robot, role=self.role))  # situation 1 of the hybrid strategy
         self.decision = DecisionLayer(robot_id, self.role, scenario.formation, goal=robot.goal, radius=robot.radius,
                                       comm_range=robot.comm_range, scan_range=robot.lidar.range, dt=scenario.dt,
-                                      centre_heading=self.policy.hybrid and self.policy_name != "pid", fov=robot.lidar.fov)
+                                      centre_heading=self.policy.hybrid and self.policy_name != "pid", fov=robot.lidar.fov,
+                                      stuck=robot.stuck)
+        self.decision.static_hold = self.policy.hybrid  # eq. (20)'s hold slows only the hybrid strategy's leader
         self.neighbours: dict[int, Neighbour] = {}
         self.scans: deque[np.ndarray] = deque(maxlen=N_SCANS)
         self.gone: set[int] = set()
@@ -281,7 +283,8 @@ class StepPipeline:
         return dec
 
     def _act(self, dec, t_run: float) -> tuple[float, float]:
-        v, w = (self.policy if dec.use_network or not self.policy.hybrid else self.pid).act(dec.obs)
+        tracker = (not dec.use_network and self.policy.hybrid) or (dec.situation == "escape" and self.decision.stuck.planned)
+        v, w = (self.pid if tracker else self.policy).act(dec.obs)  # a planned detour: the PID tracks its waypoints
         if self.role == "leader" and self.policy.hybrid:  # eq. (20), and a connectivity hold that gives up in time
             v = self.decision.hold_speed(v, dec.d_rmax, t_run, self.sc.formation.d_leader_slow,
                                          self.policy.leader_hold, self.robot.comm_range)

@@ -259,7 +259,7 @@ def success(sc: Scenario, log: TruthLog, leader_time: float | None, arrivals: li
 
 # --- livelock ------------------------------------------------------------------------------------
 
-RESOLVED_BY = ("escape", "detour", "target", "gave_up")
+RESOLVED_BY = ("escape", "detour", "target", "gave_up", "plan")
 
 
 def livelock(diags: dict) -> dict | None:
