@@ -124,20 +124,23 @@ def grow(occ: np.ndarray, r_cells: float) -> np.ndarray:
 
 def wavefront(cost: np.ndarray, goal: tuple[int, int], start: tuple[int, int]) -> np.ndarray:
     """Path cost from every cell to ``goal`` (inf: unreachable), a step into a cell costing its length (1 or
-    sqrt 2 cells) times the cell's ``cost`` (inf: blocked), by relaxation, one ring of cells a round, until the
-    costs stop changing, or once ``start`` has a cost and as many rounds again (and 20) have passed."""
+    sqrt 2 cells) times the cell's ``cost`` (inf: blocked), by relaxation in place (each of the 8 moves in turn
+    over the whole grid, so one round carries a cost several cells), until a round changes nothing, or once
+    ``start`` has a cost and as many rounds again (and 20) have passed."""
     nx, ny = cost.shape
     d = np.full((nx + 2, ny + 2), np.inf)  # a border of inf: no shifted copies needed
     d[goal[0] + 1, goal[1] + 1] = 0.0
     inner, ok = d[1:-1, 1:-1], np.isfinite(cost)
+    step = {1.0: np.where(ok, cost, 0.0), SQRT2: np.where(ok, SQRT2 * cost, 0.0)}
+    tmp, before = np.empty_like(cost), np.empty_like(cost)
     first = None
     for it in range(nx * ny):
-        new = inner.copy()
+        before[...] = inner
         for dx, dy, c in MOVES:
-            np.minimum(new, d[1 + dx:nx + 1 + dx, 1 + dy:ny + 1 + dy] + c * cost, out=new, where=ok)
-        if np.array_equal(new, inner):
+            np.add(d[1 + dx:nx + 1 + dx, 1 + dy:ny + 1 + dy], step[c], out=tmp)
+            np.minimum(inner, tmp, out=inner, where=ok)
+        if np.array_equal(before, inner):
             break
-        inner[...] = new
         if first is None and math.isfinite(inner[start]):
             first = it
         if first is not None and it > 2 * first + 20:
