@@ -149,14 +149,15 @@ def wavefront(cost: np.ndarray, goal: tuple[int, int], start: tuple[int, int]) -
 
 
 def descend(d: np.ndarray, start: tuple[int, int], max_cells: int) -> list[tuple[int, int]]:
-    """The path from ``start`` down the cost field ``d`` to its zero (at most ``max_cells`` cells)."""
+    """The path from ``start`` down the cost field ``d`` to its zero: each step to the neighbour with the least
+    cost plus step length, strictly lower than here (so it ends; at most ``max_cells`` cells)."""
     path = [start]
     i, j = start
     nx, ny = d.shape
     while d[i, j] > 0 and len(path) < max_cells:
         best = min(((d[i + dx, j + dy] + c, i + dx, j + dy) for dx, dy, c in MOVES
-                    if 0 <= i + dx < nx and 0 <= j + dy < ny), default=(math.inf, i, j))
-        if not math.isfinite(best[0]) or best[0] >= d[i, j] + 1e-9 + (0 if d[i, j] < math.inf else 1):
+                    if 0 <= i + dx < nx and 0 <= j + dy < ny and d[i + dx, j + dy] < d[i, j]), default=None)
+        if best is None:
             break
         i, j = best[1], best[2]
         path.append((i, j))
@@ -188,12 +189,14 @@ class DetourPlanner:
         """Plan from ``me`` to ``target`` (clipped into the window); False (and no path) when none exists."""
         r = self.memory.res
         x0, y0, nx, ny = self._window(me, target)
-        cell = lambda p: (min(max(math.floor(p[0] / r) - x0, 0), nx - 1), min(max(math.floor(p[1] / r) - y0, 0), ny - 1))
+        def cell(p: tuple[float, float]) -> tuple[int, int]:  # the window's cell of a point (clipped into it)
+            return min(max(math.floor(p[0] / r) - x0, 0), nx - 1), min(max(math.floor(p[1] / r) - y0, 0), ny - 1)
+
         s, g = cell(me), cell(target)
         occ = self.memory.window(x0, y0, nx, ny)
-        blocked = grow(occ, (self.radius + self.cfg.margin) / r)
-        cost = np.where(blocked, 1.0 + self.cfg.near_cost, 1.0)
-        cost[grow(occ, self.radius / 2 / r)] = np.inf  # near a return: dear (a robot pressed against it may leave)
+        blocked = grow(occ, (self.radius + self.cfg.margin) / r)  # where the grown body would touch a return
+        cost = np.where(blocked, 1.0 + self.cfg.near_cost, 1.0)  # dear there, not closed: a pressed robot may leave
+        cost[grow(occ, self.radius / 2 / r)] = np.inf  # closed within half a radius of a return
         self.planned_at = t
         self.grid = (blocked, x0, y0, (np.argwhere(occ) + (x0 + 0.5, y0 + 0.5)) * r)
         d = wavefront(cost, g, s)
