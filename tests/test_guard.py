@@ -111,3 +111,29 @@ def test_a_step_still_busy_after_the_stop_signal_gets_zero_from_beside_it_then_t
     done.set()
     stop_deadline(lambda: Busy(), done, grace=0.05, exit_=exits.append)
     assert Driver.stops == 1 and exits == [0]  # the agent had returned: nothing to do
+
+
+def test_the_stop_deadline_is_armed_once_by_the_first_signal_even_after_the_world_said_done():
+    """The world's "done" stops an agent (its stop event set) before the fleet's SIGTERM comes; a Q-learning leader
+    then still mid-plan was SIGKILLed 10 s later on held-out courses: the deadline must run from that signal."""
+    import threading
+
+    from stack.agents.cli import StopDeadline
+
+    class Driver:
+        stops = 0
+
+        def stop(self):
+            Driver.stops += 1
+
+    class Busy:
+        id, driver = 3, Driver()
+
+    exits: list[int] = []
+    dl = StopDeadline(lambda: Busy(), threading.Event(), grace=0.05, exit_=exits.append)
+    dl.arm()
+    first = dl.thread
+    dl.arm()  # a second signal: the same deadline
+    assert dl.thread is first
+    first.join(5)
+    assert Driver.stops == 1 and exits == [0]

@@ -112,16 +112,28 @@ def stop_deadline(agent_of, done: threading.Event, grace: float = STOP_GRACE_S, 
     exit_(0)
 
 
+class StopDeadline:
+    """:func:`stop_deadline` in its own thread, started once (:meth:`arm`, from a signal handler)."""
+
+    def __init__(self, agent_of, done: threading.Event, grace: float = STOP_GRACE_S, exit_=os._exit):
+        self.args = (agent_of, done, grace, exit_)
+        self.thread: threading.Thread | None = None
+
+    def arm(self) -> None:
+        if self.thread is None:
+            self.thread = threading.Thread(target=stop_deadline, args=self.args, name="stop-deadline", daemon=True)
+            self.thread.start()
+
+
 def main(cfg: AgentConfig) -> int:
     """Run one agent until its stop event, ``steps``, or a signal; zero velocity on every way out."""
     holder: list[Agent] = []
     done = threading.Event()
+    deadline = StopDeadline(lambda: holder[0] if holder else None, done)
 
     def on_signal(signum, _frame):
         log.info("agent %d: %s: stopping", cfg.robot_id, signal.Signals(signum).name)
-        if not cfg.stop.is_set():
-            threading.Thread(target=stop_deadline, args=(lambda: holder[0] if holder else None, done),
-                             name="stop-deadline", daemon=True).start()
+        deadline.arm()  # from the first signal, whether or not the agent was stopping already (world done)
         cfg.stop.set()
 
     for sig in (signal.SIGINT, signal.SIGTERM):
