@@ -90,27 +90,34 @@ def test_a_policy_that_would_drive_into_a_wall_stops_short_of_it():
 
 
 # --- the stop deadline (stack/agents/cli.py): a control step that outlasts the stop signal ---------------
+class _Driver:
+    def __init__(self):
+        self.stops = 0
+
+    def stop(self):
+        self.stops += 1
+
+
+class _Busy:
+    """An agent still inside its control step."""
+
+    def __init__(self, rid: int):
+        self.id, self.driver = rid, _Driver()
+
+
 def test_a_step_still_busy_after_the_stop_signal_gets_zero_from_beside_it_then_the_process_ends():
     import threading
 
     from stack.agents.cli import stop_deadline
 
-    class Driver:
-        stops = 0
-
-        def stop(self):
-            Driver.stops += 1
-
-    class Busy:
-        id, driver = 7, Driver()
-
+    busy = _Busy(7)
     exits: list[int] = []
     done = threading.Event()
-    stop_deadline(lambda: Busy(), done, grace=0.05, exit_=exits.append)
-    assert Driver.stops == 1 and exits == [0]  # zero velocity first, then the exit
+    stop_deadline(lambda: busy, done, grace=0.05, exit_=exits.append)
+    assert busy.driver.stops == 1 and exits == [0]  # zero velocity first, then the exit
     done.set()
-    stop_deadline(lambda: Busy(), done, grace=0.05, exit_=exits.append)
-    assert Driver.stops == 1 and exits == [0]  # the agent had returned: nothing to do
+    stop_deadline(lambda: busy, done, grace=0.05, exit_=exits.append)
+    assert busy.driver.stops == 1 and exits == [0]  # the agent had returned: nothing to do
 
 
 def test_the_stop_deadline_is_armed_once_by_the_first_signal_even_after_the_world_said_done():
@@ -120,20 +127,12 @@ def test_the_stop_deadline_is_armed_once_by_the_first_signal_even_after_the_worl
 
     from stack.agents.cli import StopDeadline
 
-    class Driver:
-        stops = 0
-
-        def stop(self):
-            Driver.stops += 1
-
-    class Busy:
-        id, driver = 3, Driver()
-
+    busy = _Busy(3)
     exits: list[int] = []
-    dl = StopDeadline(lambda: Busy(), threading.Event(), grace=0.05, exit_=exits.append)
+    dl = StopDeadline(lambda: busy, threading.Event(), grace=0.05, exit_=exits.append)
     dl.arm()
     first = dl.thread
     dl.arm()  # a second signal: the same deadline
     assert dl.thread is first
     first.join(5)
-    assert Driver.stops == 1 and exits == [0]
+    assert busy.driver.stops == 1 and exits == [0]
