@@ -251,6 +251,9 @@ class GridWorld:
         g = self.goal
         #: per state, the actions nearer the goal (section 3.2), precomputed
         self.closer: list[tuple[int, ...]] = [closer_actions(self.cell(s), g) for s in range(n)]
+        #: states whose fill was taken back because it cut the start off from the goal. Fills only add
+        #: obstacles, so such a fill would cut it off again: it is not tried (nor flood-filled) twice
+        self.refused: set[int] = set()
 
     # -- cells and states
     def index(self, cell: Cell) -> int:

@@ -470,7 +470,7 @@ def _fill_if_trapped(world: GridWorld, s: int, fill_guard: bool) -> None:
     """Algorithm 2 step (3): fill the current cell if every position nearer the goal is infeasible
     (with ``fill_guard``: unless that cuts the start off from the goal)."""
     cl = world.closer[s]
-    if not cl:
+    if not cl or s in world.refused:
         return
     nx_s, blocked = world.nxt[s], world.blocked
     for a in cl:
@@ -480,6 +480,7 @@ def _fill_if_trapped(world: GridWorld, s: int, fill_guard: bool) -> None:
     world.fill(s)
     if fill_guard and not world.connected():
         world.unfill(s)
+        world.refused.add(s)  # fills only add obstacles: this one would cut the start off again
 
 
 def _greedy_rollout(world: GridWorld, Q: list, max_steps: int) -> tuple[list[int], bool]:
