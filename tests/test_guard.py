@@ -56,6 +56,58 @@ def test_the_speed_it_allows_stops_in_time_and_it_never_limits_turning_or_revers
         GuardConfig(decel=0.0)
 
 
+def test_on_an_arc_it_judges_the_ring_the_turning_disc_sweeps():
+    g = CollisionGuard(0.5, FOV, BEAMS, RANGE, GuardConfig(margin=0.1))
+    post = np.full(BEAMS, RANGE)
+    post[90 + 60] = 1.2  # 60 deg left, 1.2 m: (0.6, 1.04), beside the straight corridor
+    assert g.free_distance(post) == math.inf
+    # turning left on rho = 1 m (centre (0, 1)): the post is 0.4 m inside the circle, inside the 0.6 m ring;
+    # the robot reaches its bearing after 1 m * (pi/2 + atan2(0.04, 0.6)) and touches it sqrt(0.6^2 - 0.4^2) before
+    delta = 1.0 - math.hypot(0.6, 1.04 - 1.0)
+    expect = math.pi / 2 + math.atan2(0.04, 0.6) - math.sqrt(0.36 - delta ** 2)
+    assert g.free_distance(post, 1.0) == pytest.approx(expect, abs=2e-3)
+    assert g.free_distance(post, -1.0) == math.inf  # turning right, away from it
+    ahead = np.full(BEAMS, RANGE)
+    ahead[90] = 2.0
+    assert g.free_distance(ahead, 1e-4) == pytest.approx(1.4)  # a 10 km arc is the straight corridor
+    assert g.free_distance(ahead, 2e-3) == pytest.approx(1.4, abs=1e-3)  # and a 500 m one nearly so
+    soft = CollisionGuard(0.5, FOV, BEAMS, RANGE, GuardConfig(margin=0.1, decel=0.25))  # stops from 0.75 m/s in 1.19 m
+    assert soft.limit(0.8, post, 0.0) == 0.8 and soft.limit(0.8, post, -0.8) == 0.8  # straight or away: free
+    capped = soft.limit(0.8, post, 0.8)
+    assert capped < 0.8 and soft.capped == 1
+    # the capped speed at the same w is a tighter arc: it too must stop in time on that arc
+    assert capped <= soft.stoppable_speed(soft.free_distance(post, 0.8 / capped)) + 1e-9
+
+
+def post_scan(x: float, y: float, yaw: float, cx: float, cy: float, rad: float) -> np.ndarray:
+    """Ranges from (x, y, yaw) to a round post of radius ``rad`` at (cx, cy) (exact ray-circle hits)."""
+    a = yaw + np.linspace(-FOV / 2, FOV / 2, BEAMS)
+    ux, uy = np.cos(a), np.sin(a)
+    ox, oy = cx - x, cy - y
+    b = ux * ox + uy * oy
+    disc = b * b - (ox * ox + oy * oy - rad * rad)
+    t = np.where(disc >= 0, b - np.sqrt(np.maximum(disc, 0.0)), np.inf)
+    return np.where((t > 0) & np.isfinite(t), np.minimum(t, RANGE), RANGE)
+
+
+def test_a_robot_turning_into_a_post_beside_it_stops_short_of_it():
+    """The held-out graze: a robot turning with forward speed beside an obstacle (outside the straight corridor
+    ahead at every step) swept into it. Driven on the exact unicycle arc, the command always v = 0.8, w = 0.8."""
+    cx, cy, rad = 0.6, 1.9, 0.3  # 1.9 m left of the start, 0.6 m ahead: on the 1 m circle the robot drives
+    for enabled in (True, False):
+        g = CollisionGuard(0.5, FOV, BEAMS, RANGE, GuardConfig(margin=0.1, enabled=enabled))
+        x = y = yaw = 0.0
+        gap = math.inf
+        for _ in range(60):
+            v = g.limit(0.8, post_scan(x, y, yaw, cx, cy, rad), 0.8)
+            x, y, yaw = arc_step(x, y, yaw, v, 0.8, 0.1)
+            gap = min(gap, math.hypot(x - cx, y - cy) - rad - 0.5)
+        if enabled:
+            assert g.capped > 0 and gap > 0.0  # it never touched
+        else:
+            assert gap < 0.0  # without the guard the same command runs into the post
+
+
 def _drive(guard: GuardConfig, steps: int = 120) -> tuple[float, int]:
     """A pid leader with its goal beyond a wall at x = 3 m: how close its centre gets to the wall, and how
     many steps the guard capped. The scan is cast analytically from the true pose each step."""

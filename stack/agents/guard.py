@@ -2,8 +2,10 @@
 
 Whatever a policy commands, the step caps the forward speed ``v`` so that the robot, braking at ``decel``
 after ``lag_s`` (the scan's age when the command takes effect: one control period), stops before its
-body grown by ``margin`` touches anything its newest scan sees in the straight corridor ahead. Rotation is
-never limited (a disc turning in place sweeps nothing new) and neither is reversing. Like a base's own
+body grown by ``margin`` touches anything its newest scan sees along the path it is commanded onto: the
+straight corridor ahead, or the arc of curvature ``w / v`` while it turns (a robot turning with forward
+speed beside a box sweeps toward it). Rotation is never limited (a disc turning in place sweeps nothing
+new) and neither is reversing. Like a base's own
 collision monitor (Nav2's ``collision_monitor``, a Jackal's e-stop field), it is a safety layer, not a
 planner: a robot it stops stays stopped until the policy turns it away, and a policy that keeps pushing
 ahead is caught by the stuck detector (:mod:`.livelock`), which escapes or detours.
@@ -12,6 +14,13 @@ Geometry, in the robot frame (x ahead): a lidar end point ``(px, py)`` with ``|p
 margin``) lies in the corridor the grown disc sweeps driving straight ahead; the disc touches it after
 ``D = px - sqrt(R^2 - py^2)`` metres. With the smallest such ``D``, the highest speed that still stops in
 time solves ``v lag + v^2 / (2 decel) = D``: ``v = decel (sqrt(lag^2 + 2 D / decel) - lag)``.
+
+On an arc of signed radius ``rho = v / w`` (centre ``(0, rho)``) the disc sweeps the ring of half-width
+``R`` around the circle of radius ``|rho|``: a point at distance ``dc`` from the centre lies in it when
+``delta = |dc - |rho|| < R``, and it is met after the arc length ``|rho| phi - sqrt(R^2 - delta^2)``, with
+``phi`` in (0, pi) the angle the robot turns about the centre to reach the point's bearing (the straight
+corridor is the limit ``rho -> inf``). Capping ``v`` at a fixed ``w`` tightens the arc, so a capped speed
+is found by bisection: the highest (to v / 4096) that stops in time on its own arc.
 """
 
 from __future__ import annotations
@@ -22,6 +31,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..settings import check, rule
+
+
+STRAIGHT = 1e-3
+"""[1/m] curvatures below this are judged as the straight corridor (a 1 km arc)."""
+ARC_ROUNDS = 12
+"""Bisection rounds for a capped speed that is safe on its own (tighter) arc: to v / 4096."""
 
 
 @dataclass
@@ -54,18 +69,26 @@ class CollisionGuard:
         self.capped = 0
         """Steps at which the guard lowered the policy's forward speed."""
 
-    def free_distance(self, ranges: np.ndarray) -> float:
-        """How far the grown disc can drive straight ahead before it touches a lidar end point [m]; inf if
-        nothing is in its way (negative: something is already inside the margin)."""
+    def free_distance(self, ranges: np.ndarray, curvature: float = 0.0) -> float:
+        """How far the grown disc can drive ahead, straight or on an arc of ``curvature`` (w / v, left
+        positive) [1/m], before it touches a lidar end point [m]; inf if nothing is in its way (negative:
+        something is already inside the margin)."""
         r = np.asarray(ranges, float)
         if r.shape != self._cos.shape:
             return math.inf  # not the layout we know: judge nothing rather than misplace points
         hit = r < self.range_max - 1e-6
-        px, py = r * self._cos, r * self._sin
-        ahead = hit & (px > 0.0) & (np.abs(py) < self.R)
-        if not ahead.any():
-            return math.inf
-        return float(np.min(px[ahead] - np.sqrt(self.R ** 2 - py[ahead] ** 2)))
+        px, py = r[hit] * self._cos[hit], r[hit] * self._sin[hit]
+        if abs(curvature) < STRAIGHT:
+            ahead = (px > 0.0) & (np.abs(py) < self.R)
+            d = px[ahead] - np.sqrt(self.R ** 2 - py[ahead] ** 2)
+        else:
+            rho = 1.0 / curvature
+            delta = np.abs(np.hypot(px, py - rho) - abs(rho))  # from the circle the centre drives on
+            turn = math.copysign(1.0, rho)  # +1: counter-clockwise about the centre (0, rho)
+            phi = np.mod(turn * (np.arctan2(py - rho, px) + turn * math.pi / 2), 2 * math.pi)
+            ahead = (delta < self.R) & (phi > 0.0) & (phi < math.pi)
+            d = abs(rho) * phi[ahead] - np.sqrt(self.R ** 2 - delta[ahead] ** 2)
+        return float(d.min()) if d.size else math.inf
 
     def stoppable_speed(self, d: float) -> float:
         """The highest forward speed from which the robot stops within ``d`` metres."""
@@ -74,15 +97,25 @@ class CollisionGuard:
         a, lag = self.cfg.decel, self.cfg.lag_s
         return a * (math.sqrt(lag * lag + 2.0 * d / a) - lag)
 
-    def limit(self, v: float, ranges: np.ndarray) -> float:
-        """``v`` capped to what the robot can stop from before what ``ranges`` shows ahead (counted)."""
+    def limit(self, v: float, ranges: np.ndarray, w: float = 0.0) -> float:
+        """``v`` capped to what the robot can stop from before what ``ranges`` shows on its way, straight or
+        on the arc that ``w`` bends it onto (counted)."""
         if not self.cfg.enabled or v <= 0.0:
             return v
-        cap = self.stoppable_speed(self.free_distance(ranges))
-        if v > cap:
-            self.capped += 1
-            return cap
-        return v
+
+        def safe(u: float) -> bool:  # u stops in time on its own arc (curvature w / u)
+            return u <= self.stoppable_speed(self.free_distance(ranges, w / u))
+
+        if safe(v):
+            return v
+        self.capped += 1
+        if w == 0.0:  # straight at any speed: the cap itself
+            return self.stoppable_speed(self.free_distance(ranges))
+        lo, hi = 0.0, v  # a lower v at the same w is a tighter arc: bisect for a speed safe on its own arc
+        for _ in range(ARC_ROUNDS):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if safe(mid) else (lo, mid)
+        return lo
 
 
 __all__ = ["CollisionGuard", "GuardConfig"]

@@ -183,7 +183,7 @@ class StepPipeline:
             if dec.obs is not None and stale is None:
                 v, w = self._act(dec, inp.t_run)
                 if inp.scan_t is not None and inp.t - inp.scan_t <= self.cfg.lidar_stale_s:
-                    v = self.guard.limit(v, self.scans[-1])  # a scan too old (pid drives without one) judges nothing
+                    v = self.guard.limit(v, self.scans[-1], w)  # a scan too old (pid drives without one) judges nothing
         d_goal = float(obs.d_g) if situation == "peer" and obs is not None else None
         return StepOutput(v=v, w=w, pose=pose, situation=situation, cov_trace=self.estimator.cov_trace,
                           d_goal=d_goal, stale=stale, target=target)
