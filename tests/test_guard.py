@@ -61,11 +61,17 @@ def test_on_an_arc_it_judges_the_ring_the_turning_disc_sweeps():
     post = np.full(BEAMS, RANGE)
     post[90 + 60] = 1.2  # 60 deg left, 1.2 m: (0.6, 1.04), beside the straight corridor
     assert g.free_distance(post) == math.inf
-    # turning left on rho = 1 m (centre (0, 1)): the post is 0.4 m inside the circle, inside the 0.6 m ring;
-    # the robot reaches its bearing after 1 m * (pi/2 + atan2(0.04, 0.6)) and touches it sqrt(0.6^2 - 0.4^2) before
-    delta = 1.0 - math.hypot(0.6, 1.04 - 1.0)
-    expect = math.pi / 2 + math.atan2(0.04, 0.6) - math.sqrt(0.36 - delta ** 2)
+    # turning left on rho = 1 m (centre (0, 1)): the post is 0.4 m inside the circle, inside the 0.6 m ring; the
+    # robot reaches its bearing after turning pi/2 + atan2(0.04, 0.6) about the centre, and its centre comes within
+    # 0.6 m of the post Delta before that (the triangle centre-post-robot: sides dc, 1 and 0.6)
+    dc = math.hypot(0.6, 1.04 - 1.0)
+    expect = math.pi / 2 + math.atan2(0.04, 0.6) - math.acos((dc ** 2 + 1.0 - 0.36) / (2 * dc))
     assert g.free_distance(post, 1.0) == pytest.approx(expect, abs=2e-3)
+    # a point already within the margin, that the arc passes nearer still (the chord estimate said 0.30 m free)
+    side = np.full(BEAMS, RANGE)
+    side[90 - 80] = 0.497  # 80 deg right, 0.497 m: (0.086, -0.489)
+    assert g.free_distance(side, -2.0) < 0.0  # turning right on rho = 0.5 m toward it: held
+    assert g.limit(0.3, side, -0.6) == 0.0
     assert g.free_distance(post, -1.0) == math.inf  # turning right, away from it
     ahead = np.full(BEAMS, RANGE)
     ahead[90] = 2.0

@@ -541,7 +541,8 @@ class Agent:
                  rejected_states=pc.rejected_states, neighbour_waits_timed_out=self.barrier.neighbour_timeouts,
                  device_odom_late=self.barrier.device_late, device_odom_strays=self.barrier.strays,
                  odom_stale=pc.odom_stale, lidar_stale=pc.lidar_stale, scans_from_driver=self.scans_from_driver,
-                 shield_masked=getattr(pl.policy, "masked", None), guard_caps=pl.guard.capped, links=pl.radio.links(), stuck=pl.decision.livelock())
+                 shield_masked=getattr(pl.policy, "masked", None), guard_caps=pl.guard.capped,
+                 guard_slides=pl.guard.slides, links=pl.radio.links(), stuck=pl.decision.livelock())
         self._diag_pub.put(encode(d))
         if self.view is not None:
             self.view.on_diag(d)

@@ -56,6 +56,8 @@ class DetourConfig:
     """[s] re-plan on the grown memory this often while following a path."""
     max_time: float = field(default=30.0, metadata=rule("> 0"))
     """[s] the longest one planned detour drives before the detector judges progress again."""
+    straight_time: float = field(default=10.0, metadata=rule("> 0"))
+    """[s] the longest a plan down a straight way that is open (a stuck robot whose policy refuses it) drives."""
     max_cells: int = field(default=200_000, metadata=rule("> 0"))
     """the most cells the memory keeps (the oldest are forgotten first)."""
 

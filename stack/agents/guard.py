@@ -17,9 +17,11 @@ time solves ``v lag + v^2 / (2 decel) = D``: ``v = decel (sqrt(lag^2 + 2 D / dec
 
 On an arc of signed radius ``rho = v / w`` (centre ``(0, rho)``) the disc sweeps the ring of half-width
 ``R`` around the circle of radius ``|rho|``: a point at distance ``dc`` from the centre lies in it when
-``delta = |dc - |rho|| < R``, and it is met after the arc length ``|rho| phi - sqrt(R^2 - delta^2)``, with
-``phi`` in (0, pi) the angle the robot turns about the centre to reach the point's bearing (the straight
-corridor is the limit ``rho -> inf``). Capping ``v`` at a fixed ``w`` tightens the arc, so a capped speed
+``delta = |dc - |rho|| < R``. With ``phi`` in (0, pi) the angle the robot turns about the centre to reach the
+point's bearing, the disc's centre comes within ``R`` of it ``Delta`` earlier, ``cos Delta = (dc^2 + rho^2 -
+R^2) / (2 dc |rho|)`` (the law of cosines), after the arc length ``D = |rho| (phi - Delta)``; negative when
+the point is already within ``R`` and the arc brings the robot nearer (the straight corridor is the limit
+``rho -> inf``). Capping ``v`` at a fixed ``w`` tightens the arc, so a capped speed
 is found by bisection: the highest (to v / 4096) that stops in time on its own arc.
 """
 
@@ -35,6 +37,8 @@ from ..settings import check, rule
 
 STRAIGHT = 1e-3
 """[1/m] curvatures below this are judged as the straight corridor (a 1 km arc)."""
+WAY_OUT_STEP = math.radians(5.0)
+"""[rad] the headings :meth:`CollisionGuard.way_out` tries."""
 ARC_ROUNDS = 12
 """Bisection rounds for a capped speed that is safe on its own (tighter) arc: to v / 4096."""
 
@@ -51,6 +55,12 @@ class GuardConfig:
     """[s] from the scan to the robot braking (a control period, the command's trip to the base)."""
     enabled: bool = True
     """False: the policy's speed goes out as it is (to measure a policy alone)."""
+    slide_after_s: float = field(default=1.0, metadata=rule(">= 0", "<= 60"))
+    """[s] a robot the guard has held still this long while its policy asks to go forward takes the way out:
+    it turns to the nearest heading whose straight corridor is free for ``slide_free`` and drives along it (the
+    guard still judging), until the policy's own command is allowed again. 0: never (hold until the policy turns)."""
+    slide_free: float = field(default=0.3, metadata=rule("> 0", "<= 5"))
+    """[m] how far the way out must be free ahead of the grown disc."""
 
     def __post_init__(self) -> None:
         check(self)
@@ -65,9 +75,11 @@ class CollisionGuard:
         self.R = radius + self.cfg.margin
         self.range_max = range_max
         ang = np.linspace(-fov / 2, fov / 2, beams) if beams > 1 else np.zeros(beams)
-        self._cos, self._sin = np.cos(ang), np.sin(ang)
+        self._ang, self._cos, self._sin = ang, np.cos(ang), np.sin(ang)
         self.capped = 0
         """Steps at which the guard lowered the policy's forward speed."""
+        self.slides = 0
+        """Steps at which the robot took the guard's way out (held still ``slide_after_s``, see the step)."""
 
     def free_distance(self, ranges: np.ndarray, curvature: float = 0.0) -> float:
         """How far the grown disc can drive ahead, straight or on an arc of ``curvature`` (w / v, left
@@ -83,12 +95,37 @@ class CollisionGuard:
             d = px[ahead] - np.sqrt(self.R ** 2 - py[ahead] ** 2)
         else:
             rho = 1.0 / curvature
-            delta = np.abs(np.hypot(px, py - rho) - abs(rho))  # from the circle the centre drives on
+            dc = np.hypot(px, py - rho)
+            delta = np.abs(dc - abs(rho))  # from the circle the centre drives on
             turn = math.copysign(1.0, rho)  # +1: counter-clockwise about the centre (0, rho)
             phi = np.mod(turn * (np.arctan2(py - rho, px) + turn * math.pi / 2), 2 * math.pi)
             ahead = (delta < self.R) & (phi > 0.0) & (phi < math.pi)
-            d = abs(rho) * phi[ahead] - np.sqrt(self.R ** 2 - delta[ahead] ** 2)
+            dc = dc[ahead]  # the disc's centre comes within R of the point Delta before its bearing (law of cosines)
+            cos_c = (dc ** 2 + rho ** 2 - self.R ** 2) / np.maximum(2.0 * dc * abs(rho), 1e-12)
+            d = abs(rho) * (phi[ahead] - np.arccos(np.clip(cos_c, -1.0, 1.0)))
         return float(d.min()) if d.size else math.inf
+
+    def way_out(self, ranges: np.ndarray, prefer: float = 0.0) -> float | None:
+        """The relative heading [rad] (within the lidar's field of view, in steps of ``WAY_OUT_STEP``) nearest to
+        straight ahead whose straight corridor is free for ``slide_free``, on ``prefer``'s side when two are as near;
+        None where none is."""
+        r = np.asarray(ranges, float)
+        if r.shape != self._cos.shape:
+            return None
+        hit = r < self.range_max - 1e-6
+        ang, rr = self._ang[hit], r[hit]
+        half = float(self._ang[-1]) if len(self._ang) else 0.0
+        theta = np.arange(-half, half + 1e-9, WAY_OUT_STEP)
+        rel = ang[None, :] - theta[:, None]  # each point's bearing from each candidate heading
+        px, py = rr[None, :] * np.cos(rel), rr[None, :] * np.sin(rel)
+        inside = (px > 0.0) & (np.abs(py) < self.R)
+        d = np.where(inside, px - np.sqrt(np.maximum(self.R ** 2 - py ** 2, 0.0)), np.inf).min(axis=1)
+        ok = np.flatnonzero(d >= self.cfg.slide_free)
+        if not len(ok):
+            return None
+        side = math.copysign(1.0, prefer) if prefer else 1.0
+        best = min(ok, key=lambda k: (round(abs(theta[k]), 6), -side * theta[k]))
+        return float(theta[best])
 
     def stoppable_speed(self, d: float) -> float:
         """The highest forward speed from which the robot stops within ``d`` metres."""

@@ -120,6 +120,8 @@ class StuckDetector:
         self.memory = ScanMemory(dc.resolution, dc.max_cells)
         self.planner = DetourPlanner(dc, self.memory, radius)
         self.plan_until = 0.0
+        self.plan_from = (0.0, 0.0)  # where the plan under way began
+        self.straight = False  # the plan under way goes down a straight way that was open when it began
         self.samples: deque[tuple[float, float, float, float]] = deque()  # (t, d, x, y)
         self.episodes = 0
         self.resolved = dict.fromkeys(RESOLUTIONS, 0)
@@ -191,24 +193,30 @@ class StuckDetector:
 
     def _follow(self, t: float, me: tuple[float, float], target) -> tuple[float, float] | None:
         """A planned detour under way: the next waypoint on the path (re-planned every ``replan_s``), or None when
-        it is over (time is up, no path any more, or the straight way to the target is open)."""
+        it is over (time is up, no path any more, or the straight way to the target is open; a plan down a way
+        that was open from the start ends once the robot is ``open_horizon`` along it)."""
         dc = self.cfg.detour
         if t >= self.plan_until or target is None:
             return None
         if t - self.planner.planned_at >= dc.replan_s:
-            if not self.planner.plan(t, me, target) or self.planner.open_line(me, target):
+            if not self.planner.plan(t, me, target):
+                return None
+            along = math.hypot(me[0] - self.plan_from[0], me[1] - self.plan_from[1])
+            if self.planner.open_line(me, target) and not (self.straight and along < dc.open_horizon):
                 return None
         return self.planner.waypoint(me)
 
     def _plan(self, t: float, me: tuple[float, float], target) -> tuple[float, float] | None:
-        """The first waypoint of a planned detour, or None where there is nothing to plan round (the straight way
-        to the target is open in the memory) or no way round it."""
-        if not self.cfg.detour.enabled or target is None:
+        """The first waypoint of a planned detour, or None where there is no way round. Where the straight way to
+        the target is open in the memory the robot is stuck all the same (its policy's own steering refuses the
+        way: Deng's obstacle term repels every direction through a gap), so the tracker drives down the way for
+        ``open_horizon`` metres, ``straight_time`` at most."""
+        dc = self.cfg.detour
+        if not dc.enabled or target is None or not self.planner.plan(t, me, target):
             return None
-        ok = self.planner.plan(t, me, target)
-        if not ok or self.planner.open_line(me, target):
-            return None
-        self.plan_until = t + self.cfg.detour.max_time
+        self.straight = self.planner.open_line(me, target)
+        self.plan_from = me
+        self.plan_until = t + (min(dc.straight_time, dc.max_time) if self.straight else dc.max_time)
         return self.planner.waypoint(me)
 
     def _try(self, t, x, y, yaw, scan, fov, range_max, radius, target=None) -> tuple[float, float] | None:

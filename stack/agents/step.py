@@ -99,6 +99,12 @@ class StepOutput:
     target: tuple[float, float] | None = None  # where the decision layer steers: the goal, the slot, an escape waypoint
 
 
+HELD_BELOW = 0.02
+"""[m/s] the guard holds a robot still when it lets less than this through of a command asking for more."""
+SLIDE_K, SLIDE_W_MIN = 2.0, 0.3
+"""The way out: turn rate [1/s] per radian still to turn, and the least turn rate [rad/s]."""
+
+
 @dataclass
 class StepConfig:
     """The step pipeline's settings (the robot and the scenario bring the rest)."""
@@ -161,6 +167,7 @@ class StepPipeline:
         self.counters = StepCounters()
         lid = robot.lidar
         self.guard = CollisionGuard(robot.radius, lid.fov, lid.beams, lid.range, self.cfg.guard)
+        self._held_since: float | None = None  # step time since which the guard holds the robot still
 
     @property
     def needs_lidar(self) -> bool:
@@ -181,9 +188,7 @@ class StepPipeline:
             dec = self._decide(inp, pose)
             situation, obs, target = dec.situation, dec.obs, dec.target
             if dec.obs is not None and stale is None:
-                v, w = self._act(dec, inp.t_run)
-                if inp.scan_t is not None and inp.t - inp.scan_t <= self.cfg.lidar_stale_s:
-                    v = self.guard.limit(v, self.scans[-1], w)  # a scan too old (pid drives without one) judges nothing
+                v, w = self._guarded(*self._act(dec, inp.t_run), inp)
         d_goal = float(obs.d_g) if situation == "peer" and obs is not None else None
         return StepOutput(v=v, w=w, pose=pose, situation=situation, cov_trace=self.estimator.cov_trace,
                           d_goal=d_goal, stale=stale, target=target)
@@ -289,6 +294,29 @@ class StepPipeline:
             v = self.decision.hold_speed(v, dec.d_rmax, t_run, self.sc.formation.d_leader_slow,
                                          self.policy.leader_hold, self.robot.comm_range)
         return v, w
+
+    def _guarded(self, v: float, w: float, inp: StepInputs) -> tuple[float, float]:
+        """The collision guard on a command (a scan too old judges nothing: ``pid`` drives without one). Held still
+        ``slide_after_s`` while the policy asks to go forward, the robot takes the guard's way out instead: it turns
+        in place to the nearest heading whose corridor is free, then drives along it (the guard judging that too)."""
+        w = max(-self.robot.w_max, min(self.robot.w_max, w))  # the turn the base will make: the arc to judge
+        if inp.scan_t is None or inp.t - inp.scan_t > self.cfg.lidar_stale_s:
+            return v, w
+        ranges, g = self.scans[-1], self.cfg.guard
+        allowed = self.guard.limit(v, ranges, w)
+        if not (v > HELD_BELOW and allowed < HELD_BELOW):
+            self._held_since = None
+            return allowed, w
+        self._held_since = inp.t if self._held_since is None else self._held_since
+        if g.slide_after_s <= 0 or inp.t - self._held_since < g.slide_after_s:
+            return allowed, w
+        theta = self.guard.way_out(ranges, prefer=w)
+        if theta is None:
+            return allowed, w
+        self.guard.slides += 1
+        if theta == 0.0:  # facing the way out: along it, as fast as the guard allows
+            return self.guard.limit(v, ranges, 0.0), 0.0
+        return 0.0, math.copysign(min(self.robot.w_max, max(SLIDE_W_MIN, SLIDE_K * abs(theta))), theta)
 
     def _take_role(self, role: str, t_run: float) -> None:
         """Failover: the formation's rule made this robot the leader (or a follower again)."""

@@ -207,6 +207,7 @@ class Diag(_Msg):
     scans_from_driver: int = 0  # real time: scans the robot's own driver read (a Jackal's LaserScan)
     shield_masked: int | None = None  # --policy drl: steps at which the action shield overruled the network
     guard_caps: int = 0  # steps at which the collision guard lowered the policy's forward speed
+    guard_slides: int = 0  # steps at which a robot the guard held still took its way out (GuardConfig.slide_after_s)
     links: dict[int, dict[str, int]] | None = None  # sender id -> {delivered, dropped_range, dropped_loss}, cumulative
     # (RadioModel.links()): the comm graph a recorder draws; None from senders that do not count per link
     stuck: dict | None = None  # stuck episodes, what resolved them, the leader hold's give-ups (stack.agents.livelock)
