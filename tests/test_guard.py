@@ -147,6 +147,53 @@ def test_a_policy_that_would_drive_into_a_wall_stops_short_of_it():
     assert capped_off == 0 and closest_off < 0.5  # the same pid without the guard drives into the wall
 
 
+def test_the_way_out_is_the_nearest_heading_whose_corridor_is_free():
+    g = CollisionGuard(0.5, FOV, BEAMS, RANGE, GuardConfig(margin=0.1, slide_free=0.3))
+    post = post_scan(0.0, 0.0, 0.0, 0.45, -0.75, 0.2)  # ahead right, its edge 0.05 m inside the corridor
+    assert g.free_distance(post) < 0.3
+    theta = g.way_out(post, prefer=-1.0)
+    assert theta is not None and theta > 0.0  # to the left, away from it, whatever the policy prefers
+    turned = post_scan(0.0, 0.0, theta, 0.45, -0.75, 0.2)
+    assert g.free_distance(turned) >= 0.3  # free as asked
+    less = post_scan(0.0, 0.0, theta - math.radians(5), 0.45, -0.75, 0.2)
+    assert g.free_distance(less) < 0.3  # and the nearest such heading (in 5 degree steps)
+    assert g.way_out(np.full(BEAMS, 0.7)) is None  # walled in: none
+
+
+def _slide(cfg: GuardConfig, steps: int = 80) -> tuple[float, float, float, int]:
+    """A pid leader whose goal lies straight ahead, past a post whose edge reaches 0.05 m into the grown corridor:
+    how far it gets, its closest gap to the post, and the guard's slides."""
+    d = scenario_dict(duration=20.0)
+    d["robots"] = [{"id": 0, "role": "leader", "pose": [0.0, 0.0, 0.0]}]
+    d["formation"] = {"leader": 0, "goal": [8.0, 0.0], "slots": {}}
+    d["robot"]["lidar"] = {"beams": BEAMS, "fov_deg": 180, "range": RANGE, "noise_std": 0.0}
+    d["robot"]["stuck"] = {"enabled": False}  # the guard alone
+    sc = parse_scenario(d)
+    pl = StepPipeline(sc, 0, policy="pid", config=StepConfig(guard=cfg))
+    x = y = yaw = v = w = 0.0
+    gap = math.inf
+    cx, cy, rad = 0.6, -0.75, 0.2
+    for k in range(steps):
+        t = k * sc.dt
+        scan = Scan(id=0, stamp=t, step=k, angle_min=-FOV / 2, angle_increment=FOV / (BEAMS - 1), range_max=RANGE,
+                    ranges=post_scan(x, y, yaw, cx, cy, rad).tolist())
+        odo = OdomSample(t=t, v=v, w=w, pose=(x, y, yaw))
+        out = pl.step(StepInputs(step=k, t=t, t_run=t, now=t, odometry=(odo,), scan=scan, scan_t=t))
+        v, w = out.v, out.w
+        x, y, yaw = arc_step(x, y, yaw, v, w, sc.dt)
+        gap = min(gap, math.hypot(x - cx, y - cy) - rad - 0.5)
+    return x, y, gap, pl.guard.slides
+
+
+def test_a_robot_the_guard_holds_takes_the_way_out_and_goes_on():
+    """The pid aims straight at its goal, past a post whose edge is inside the grown corridor: the guard holds it (no
+    turn comes from the pid, its goal is dead ahead). Held 1 s, it turns to the nearest free heading and drives on."""
+    x, _, gap, slides = _slide(GuardConfig(margin=0.1, slide_after_s=1.0))
+    assert slides > 0 and x > 1.5 and gap > 0.0  # past the post, never touching it
+    x_held, _, _, none = _slide(GuardConfig(margin=0.1, slide_after_s=0.0))
+    assert none == 0 and x_held < 0.5  # without the way out it stands where the guard first held it
+
+
 # --- the stop deadline (stack/agents/cli.py): a control step that outlasts the stop signal ---------------
 class _Driver:
     def __init__(self):

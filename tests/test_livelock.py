@@ -277,3 +277,32 @@ def test_the_memory_forgets_nothing_seen_and_the_neighbours():
     mem.add(0.0, 0.0, 0.0, ranges, math.pi, 5.0)
     cells = np.array(list(mem.cells)) * 0.25
     assert len(cells) and np.all(np.abs(np.hypot(cells[:, 0] + 0.125, cells[:, 1] + 0.125) - 2.0) < 0.25)
+
+
+def test_a_robot_stuck_with_its_way_open_is_driven_down_it_then_handed_back():
+    """Deng's obstacle term can refuse a 3 m gap whose edges its sectors see: the robot stands still with the straight
+    way to its slot open in its memory. The plan then drives down that way (rather than a blind escape to a side)
+    for ``open_horizon`` metres and hands back to the policy."""
+    dl = layer()
+    x, y = 0.0, 3.0
+    yaw = math.atan2(SLOT[1] - y, SLOT[0] - x)  # facing the slot: the cylinder is 2 m off the line
+    t = 0.0
+    while not dl.stuck.planned and t < 12.0:
+        step(dl, t, x, y, yaw)
+        t = round(t + DT, 6)
+    assert dl.stuck.planned and dl.stuck.straight, "a stuck robot with an open way gets no plan down it"
+    wx, wy = dl.stuck.waypoint
+    ux, uy = math.cos(yaw), math.sin(yaw)
+    # down the way: about lookahead (2 m) along an 8-connected grid path, which stairs round the straight line
+    assert abs((wx - x) * uy - (wy - y) * ux) < 0.75 and 1.2 < (wx - x) * ux + (wy - y) * uy < 2.5
+    travelled = 0.0
+    while dl.stuck.planned and t < 40.0:  # it drives down the way at 1 m/s (10 s, straight_time, would be 10 m)
+        x, y, travelled = x + 0.1 * ux, y + 0.1 * uy, travelled + 0.1
+        step(dl, t, x, y, yaw)
+        t = round(t + DT, 6)
+    assert not dl.stuck.planned
+    assert 6.0 - 1e-6 <= travelled <= 7.0 + 1e-6  # handed back once open_horizon along (at the next re-plan, each 1 s)
+    for _ in range(5):  # the policy drives on: the progress since the hand-back resolves the episode
+        x, y, t = x + 0.1 * ux, y + 0.1 * uy, round(t + DT, 6)
+        step(dl, t, x, y, yaw)
+    assert dl.livelock()["plan"] == 1 and dl.livelock()["open"] == 0
