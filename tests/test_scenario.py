@@ -68,7 +68,7 @@ BAD = [
     (lambda d: d["robot"].__setitem__("fuzzy", {"target": [1, "x"]}), "robot.fuzzy.target[1]: expected a number, got text ('x')"),
     (lambda d: d["robot"].__setitem__("sim", {"port": 1}), "robot.sim.port: unknown field (allowed: none)"),
     (lambda d: d["robots"][1].__setitem__("guard", {"margin": -1}), "robots[1].guard.margin: must be >= 0, got -1"),
-    (lambda d: d["robot"].__setitem__("guard", {"brake": 2}), "robot.guard.brake: unknown field (allowed: decel, enabled, lag_s, margin)"),
+    (lambda d: d["robot"].__setitem__("guard", {"brake": 2}), "robot.guard.brake: unknown field (allowed: decel, enabled, lag_s, margin, slide_after_s, slide_free)"),
     (lambda d: d["robot"].__setitem__("stuck", {"detour": {"lookahed": 2}}), "robot.stuck.detour.lookahed: unknown field"),
     (lambda d: d["robots"][0].__setitem__("stuck", {"window": 0}), "robots[0].stuck.window: must be > 0, got 0"),
 ]
