@@ -227,6 +227,11 @@ class DetourPlanner:
                 best = q
         return float(best[0]), float(best[1])
 
+    def _samples(self, a: tuple[float, float], b: tuple[float, float]) -> np.ndarray:
+        """Points every half cell (at least the two ends) along the segment a -> b: (M, 2)."""
+        n = max(2, int(math.hypot(b[0] - a[0], b[1] - a[1]) / (self.memory.res / 2)))
+        return np.column_stack([np.linspace(a[0], b[0], n), np.linspace(a[1], b[1], n)])
+
     def clearance(self, pts: np.ndarray) -> np.ndarray:
         """(M,) distance from each point (M, 2) to the nearest remembered return the last :meth:`plan` knew
         (a cell's centre, less half a cell); inf with none within reach of the grown body."""
@@ -248,11 +253,9 @@ class DetourPlanner:
         c = self.cfg
         dist = math.hypot(target[0] - me[0], target[1] - me[1])
         f = min(1.0, c.open_horizon / dist) if dist > 0 else 0.0
-        end = (me[0] + f * (target[0] - me[0]), me[1] + f * (target[1] - me[1]))
-        n = max(2, int(f * dist / (self.memory.res / 2)))
-        pts = np.column_stack([np.linspace(me[0], end[0], n), np.linspace(me[1], end[1], n)])
+        pts = self._samples(me, (me[0] + f * (target[0] - me[0]), me[1] + f * (target[1] - me[1])))
         cl = self.clearance(pts)
-        need = np.full(n, self.radius + c.open_margin)
+        need = np.full(len(pts), self.radius + c.open_margin)
         near = np.hypot(pts[:, 0] - me[0], pts[:, 1] - me[1]) < 0.5
         need[near] = np.minimum(need[near], cl[0] - 0.02)
         return bool(np.all(cl >= need))
@@ -260,8 +263,6 @@ class DetourPlanner:
     def clear_line(self, me: tuple[float, float], target: tuple[float, float]) -> bool:
         """Whether the straight line from ``me`` to ``target`` keeps the body ``radius`` + ``margin`` off every return
         the last :meth:`plan` knew, or (a robot already nearer than that) never brings it nearer than it is."""
-        n = max(2, int(math.hypot(target[0] - me[0], target[1] - me[1]) / (self.memory.res / 2)))
-        pts = np.column_stack([np.linspace(me[0], target[0], n), np.linspace(me[1], target[1], n)])
-        c = self.clearance(pts)
+        c = self.clearance(self._samples(me, target))
         need = min(self.radius + self.cfg.margin, float(c[0]) - 0.02)
         return bool(np.all(c[1:] >= need))
