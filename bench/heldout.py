@@ -82,7 +82,20 @@ def run_all(tasks: list[dict], eng, resume: bool) -> list[dict]:
     return rows + [row(t, *report_of(r)) for t, r in zip(todo, run_jobs(jobs, eng, desc="held-out"))]
 
 
-def plan(courses: int, densities: list[str], policies: list[str], out: Path, skip: int = 0) -> list[dict]:
+def _variant(c, policy: str, weights: Path | None) -> dict | None:
+    """The course's ``robot`` block for ``policy`` where it differs from the course's own: ``drl-alone``'s safety
+    layers off, ``--drl-weights`` for both drl kinds; None where it does not."""
+    drl = policy.removesuffix("-alone") == "drl"
+    if not policy.endswith("-alone") and not (drl and weights):
+        return None
+    robot = {**c.scenario["robot"], **(ALONE if policy.endswith("-alone") else {})}
+    if drl and weights:
+        robot["drl"] = {**robot.get("drl", {}), "weights": str(weights)}
+    return robot
+
+
+def plan(courses: int, densities: list[str], policies: list[str], out: Path, skip: int = 0,
+         drl_weights: Path | None = None) -> list[dict]:
     """Write the held-out courses (seeds ``skip`` on into the held-out range) under OUT/courses/<density>/ and list
     the runs."""
     tasks = []
@@ -91,13 +104,13 @@ def plan(courses: int, densities: list[str], policies: list[str], out: Path, ski
             c = generate_course(seed, density=d, purpose="heldout")
             path = write_course(c, out / "courses" / d / f"{c.scenario['name']}.yaml")
             for p in policies:
-                alone = p.endswith("-alone")
                 if p.removesuffix("-alone") not in c.scenario["bench"]["policies"]:
                     continue
-                file = path
-                if alone:  # the same course, the safety layers off
-                    bare = replace(c, scenario={**c.scenario, "robot": {**c.scenario["robot"], **ALONE}})
-                    file = write_course(bare, out / "courses" / d / f"{c.scenario['name']}-alone.yaml")
+                file, robot = path, _variant(c, p, drl_weights)
+                if robot is not None:  # the same course, the safety layers off or other weights
+                    tag = "alone" if p.endswith("-alone") else "weights"
+                    file = write_course(replace(c, scenario={**c.scenario, "robot": robot}),
+                                        out / "courses" / d / f"{c.scenario['name']}-{tag}.yaml")
                 tasks.append({"policy": p, "density": d, "seed": seed, "robots": c.robots, "family": c.family,
                               "file": str(file), "out": str(out / "runs" / p / d / str(seed))})
     return tasks
@@ -208,6 +221,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--first-seed", type=int, default=HELDOUT_SEEDS.start, metavar="S",
                     help=f"the first held-out seed (default {HELDOUT_SEEDS.start}); a seed once reported is spent: a table "
                          "after a change takes the seeds after it")
+    ap.add_argument("--drl-weights", type=Path, metavar="FILE",
+                    help="drl and drl-alone run these weights (robot.drl.weights: a stack-train drl drl.pt or its .npz "
+                         "export; default: the shipped ones)")
     ap.add_argument("--resume", action="store_true", help="keep the runs that already have a report.json")
     ap.add_argument("--out", type=Path, default=Path("runs/heldout"))
     add_engine_args(ap)
@@ -217,10 +233,13 @@ def main(argv: list[str] | None = None) -> int:
     left = len(HELDOUT_SEEDS) - skip
     if a.first_seed not in HELDOUT_SEEDS:
         ap.error(f"--first-seed {a.first_seed}: expected a held-out seed, {HELDOUT_SEEDS.start}..{HELDOUT_SEEDS.stop - 1}")
+    if a.drl_weights is not None and not a.drl_weights.is_file():
+        ap.error(f"--drl-weights {a.drl_weights}: no such file")
     if not 0 <= a.courses <= left or not 0 <= a.arrival <= left or not a.courses + a.arrival:
         ap.error(f"--courses {a.courses}, --arrival {a.arrival}: expected 0..{left} each from seed {a.first_seed}, not both 0")
     try:
-        tasks = plan(a.courses, a.densities, a.policies, a.out.resolve(), skip)
+        tasks = plan(a.courses, a.densities, a.policies, a.out.resolve(), skip,
+                     a.drl_weights.resolve() if a.drl_weights else None)
         tasks += plan_arrival(a.arrival, a.arrival_policies, a.out.resolve(), skip)
         tasks.sort(key=lambda t: t["seed"])  # seed-major: a run cut short leaves whole seeds; --resume goes on
     except CourseError as e:

@@ -60,3 +60,17 @@ def test_a_later_table_takes_the_seeds_after_the_spent_ones(tmp_path, capsys):
         assert e.value.code == 2
         err = capsys.readouterr().err
         assert msg in err, err
+
+
+def test_drl_weights_go_to_both_drl_kinds_and_nothing_else(tmp_path, capsys):
+    w = ROOT / "stack" / "policies" / "drl" / "weights" / "drl.pt"
+    tasks = heldout.plan(1, ["medium"], ["drl", "drl-alone", "aina"], tmp_path, drl_weights=w)
+    assert not next(t for t in tasks if t["policy"] == "aina")["file"].endswith("-weights.yaml")  # its own file
+    tasks = [t for t in tasks if t["policy"] != "aina"]
+    by = {t["policy"]: load_scenario(t["file"]) for t in tasks}
+    assert all(r.settings["drl"].weights == str(w) for p in ("drl", "drl-alone") for r in by[p].robots)
+    assert all(r.settings["drl"].shield for r in by["drl"].robots)  # the shield stays on for plain drl
+    assert all(not r.settings["drl"].shield and not r.guard.enabled for r in by["drl-alone"].robots)
+    with pytest.raises(SystemExit) as e:
+        heldout.main(["--drl-weights", str(tmp_path / "none.pt"), "--out", str(tmp_path / "x")])
+    assert e.value.code == 2 and "--drl-weights" in capsys.readouterr().err

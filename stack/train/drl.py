@@ -36,6 +36,10 @@ from . import PROG, InputError
 from .flags import add_job_arguments, flag, job_from_args
 
 HELD_OUT_SEED = 20261
+COURSE_WORLD = {"robots": 8, "max_circles": 24, "max_boxes": 24}
+"""Stage 3's world: room for a course's 3-8 robots and its obstacles (:mod:`.course_scenes`)."""
+EVAL_COURSES = 30
+"""Stage 3: the courses (seeds ``eval_course_seed`` ..) the end-of-training evaluation cuts its scenes from."""
 
 
 @dataclass
@@ -45,8 +49,9 @@ class DrlJob:
     The command line is generated from these fields (``--field-name``, the docstring as help:
     :mod:`stack.train.flags`), so a setting is written once, here."""
 
-    stage: int = flag(1, choices=(1, 2))
-    """curriculum stage: 1 one robot among obstacles, 2 four robots (one trained, the others on a frozen copy)"""
+    stage: int = flag(1, choices=(1, 2, 3))
+    """curriculum stage: 1 one robot among obstacles, 2 four robots (one trained, the others on a frozen copy),
+    3 (ours) stretches of generated courses, 3-8 robots, a curriculum over density and robot count"""
     out: Path = Path("runs/drl")
     """output folder (drl.pt, best.pt, drl.json, reward.png)"""
     init: Path | None = flag(None, metavar="WEIGHTS")
@@ -95,6 +100,12 @@ class DrlJob:
     """ours: end an episode with -1 when the robot has moved < 0.1 m in this many steps (0: off)"""
     robots: int = flag(4, choices=range(2, 9), metavar="N")
     """stage 2: robots per scene, 2..8 (the paper: four)"""
+    courses: int = flag(240, type=positive_int)
+    """stage 3: generated courses in the training pool (seeds --course-seed ..; each density and 3-8 robots in turn)"""
+    course_seed: int = flag(0, type=nonnegative_int)
+    """stage 3: the pool's first course seed (training seeds; the held-out 1,000,000.. are refused)"""
+    eval_course_seed: int = flag(900, type=nonnegative_int)
+    """stage 3: the first seed of the 30 courses the end-of-training evaluation cuts its scenes from"""
     max_walls: int = flag(2, name="--walls", choices=range(0, 4), metavar="N")
     """walls (2-10 m, across the way) per training / held-out scene, 0..N (0: the paper's randomly scattered
     cuboids and cylinders)"""
@@ -262,11 +273,12 @@ class NStep:
 
 # --- evaluation ------------------------------------------------------------------------------------
 def evaluate(net, *, stage: int = 1, episodes: int = 200, seed: int = HELD_OUT_SEED, max_steps: int = 500,
-             epsilon: float = 0.0, max_walls: int = 2, robots: int = 4) -> dict:
+             epsilon: float = 0.0, max_walls: int = 2, robots: int = 4, course_seed: int = 900) -> dict:
     """Greedy run of ``net`` on the held-out scenes: success / collision / timeout rates.
 
     Stage 1: one robot per scene. Stage 2: all four robots drive with ``net``; a scene succeeds
-    when every robot arrives, fails by collision when any collides. ``epsilon``: the chance of a
+    when every robot arrives, fails by collision when any collides. Stage 3: the same on scenes cut
+    from the courses of seeds ``course_seed`` .. (not the training pool's; every curriculum level). ``epsilon``: the chance of a
     random action per step (the policy's ``explore``; 0: greedy)."""
     import torch
 
@@ -274,8 +286,15 @@ def evaluate(net, *, stage: int = 1, episodes: int = 200, seed: int = HELD_OUT_S
 
     from .drlworld import DrlWorld, WorldConfig, held_out_scenes
 
-    scenes = held_out_scenes(episodes, stage, seed, max_walls, robots)
-    w = DrlWorld(episodes, stage, seed=seed + 1, cfg=WorldConfig(max_steps=max_steps, max_walls=max_walls, robots=robots))
+    if stage == 3:  # scenes cut from courses no training pool holds, every curriculum level
+        pool = course_pool(EVAL_COURSES, course_seed, log=lambda *_: None)
+        pool.progress, rng = 1.0, np.random.default_rng([seed, stage])
+        scenes = [pool(rng) for _ in range(episodes)]
+        cfg = WorldConfig(max_steps=max_steps, **COURSE_WORLD)
+    else:
+        scenes = held_out_scenes(episodes, stage, seed, max_walls, robots)
+        cfg = WorldConfig(max_steps=max_steps, max_walls=max_walls, robots=robots)
+    w = DrlWorld(episodes, stage, seed=seed + 1, cfg=cfg)
     w.reset(np.ones(episodes, bool), scenes)
     arrived = np.zeros((episodes, w.R), bool)
     collided = np.zeros((episodes, w.R), bool)
@@ -294,10 +313,20 @@ def evaluate(net, *, stage: int = 1, episodes: int = 200, seed: int = HELD_OUT_S
         arrived |= arr
         collided |= col
         steps[live] = t + 1
-    succ = arrived.all(axis=1) & ~collided.any(axis=1)
+    succ = (arrived | ~w.present).all(axis=1) & ~collided.any(axis=1)  # every robot in the scene arrived
     coll = collided.any(axis=1)
     return {"episodes": episodes, "stage": stage, "seed": seed, "epsilon": epsilon, "max_walls": max_walls, "robots": w.R, "success": float(succ.mean()), "collision": float(coll.mean()),
             "timeout": float((~succ & ~coll).mean()), "mean_steps_success": float(steps[succ].mean()) if succ.any() else None}
+
+
+def course_pool(n: int, first_seed: int, log=print):
+    """Stage 3's scenes: :class:`.course_scenes.CourseScenes` of ``n`` generated courses."""
+    from .course_scenes import CourseScenes
+
+    t0 = time.monotonic()
+    pool = CourseScenes(n, first_seed)
+    log(f"stage 3: {n} generated courses (seeds {first_seed}..{first_seed + n - 1}) in {time.monotonic() - t0:.1f} s")
+    return pool
 
 
 # --- training ----------------------------------------------------------------------------------------
@@ -323,9 +352,11 @@ class _Training:
         self.L = Learner(job, net)
         self.frozen = DuelingQNet()  # theta~ of the other robots (stage 2)
         self.frozen.load_state_dict(net.state_dict())
-        self.world = DrlWorld(job.envs, job.stage, seed=job.seed, cfg=WorldConfig(
+        self.scenes = course_pool(job.courses, job.course_seed, log) if job.stage == 3 else None
+        size = COURSE_WORLD if job.stage == 3 else {"robots": job.robots}
+        self.world = DrlWorld(job.envs, job.stage, seed=job.seed, scenes=self.scenes, cfg=WorldConfig(
             max_steps=job.max_steps, time_penalty=job.time_penalty, stall_steps=job.stall_steps,
-            max_walls=job.max_walls, robots=job.robots))
+            max_walls=job.max_walls, **size))
         self.N, self.R = self.world.N, self.world.R
         self.D = Replay(job.memory, self.world.cfg.beams, self.R - 1, self.rng)
         self.nstep = NStep(self.D, job.n_step, job.gamma, self.N)
@@ -380,6 +411,8 @@ class _Training:
                                "steps": int(w.t[n]), "epsilon": round(eps, 4)})
         if done.any():
             self.ep_return[done] = 0.0
+            if self.scenes is not None:  # stage 3's curriculum: the new scenes at the training's progress
+                self.scenes.progress = self.episode / self.job.episodes
             w.reset(done)
             obs2 = w.observe()
         return obs2, done
@@ -450,7 +483,8 @@ class _Training:
                 nets["best.pt"] = DuelingQNet()
                 nets["best.pt"].load_state_dict(self.torch.load(job.out / "best.pt", weights_only=True))
             ev = {k: evaluate(net, stage=job.stage, episodes=job.eval_episodes, max_steps=job.max_steps,
-                              max_walls=job.max_walls, robots=job.robots, seed=job.eval_seed) for k, net in nets.items()}
+                              max_walls=job.max_walls, robots=job.robots, seed=job.eval_seed,
+                              course_seed=job.eval_course_seed) for k, net in nets.items()}
             for k, v in ev.items():
                 self.log(f"held-out {k}: success {v['success']:.3f}, collision {v['collision']:.3f}, timeout {v['timeout']:.3f}")
         summary = _write_json(job, self.curve, self.losses, self.steps, wall, ev)
@@ -510,6 +544,13 @@ def main(args: argparse.Namespace) -> int:
     for path in (job.evaluate, job.init):
         if path is not None and not path.exists():
             raise InputError(f"{path}: no such weights file")
+    if job.stage == 3:
+        from .course_scenes import heldout_clash
+
+        for flag_, first, n in (("--course-seed", job.course_seed, job.courses),
+                                ("--eval-course-seed", job.eval_course_seed, EVAL_COURSES)):
+            if heldout_clash(first, n):
+                raise InputError(f"{flag_} {first}: {heldout_clash(first, n)}")
     if job.export:
         from stack.policies.drl.numpy_net import export_npz
         from stack.policies.drl.policy import WEIGHTS, load_network
@@ -521,7 +562,8 @@ def main(args: argparse.Namespace) -> int:
         net = DuelingQNet()
         net.load_state_dict(torch.load(job.evaluate, map_location="cpu", weights_only=True))
         print(json.dumps(evaluate(net, stage=job.stage, episodes=job.eval_episodes or 200, max_steps=job.max_steps,
-                                  max_walls=job.max_walls, robots=job.robots, seed=job.eval_seed)))
+                                  max_walls=job.max_walls, robots=job.robots, seed=job.eval_seed,
+                                  course_seed=job.eval_course_seed)))
         return 0
     train(job)
     return 0

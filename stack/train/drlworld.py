@@ -15,7 +15,9 @@ stage 2) among circles and boxes (walls are boxes, :meth:`stack.scenario.Obstacl
 
 Scenes (section V-A 1, Fig. 7): stage 1 one robot among random cylinders, boxes and walls, the
 target a random distance away; stage 2 four robots in a formation-like layout (within 10 m of
-each other), every target the robot's start translated by one common random vector.
+each other), every target the robot's start translated by one common random vector; stage 3 (ours)
+stretches of generated courses, 3-8 robots (:mod:`.course_scenes`; a scene's spare robots are parked
+far away and never active).
 """
 
 from __future__ import annotations
@@ -152,9 +154,11 @@ def _nearest(bodies: np.ndarray, key: np.ndarray, pad) -> np.ndarray:
 class DrlWorld:
     """N environments x R robots. ``observe()`` -> network inputs, ``step(actions)`` -> rewards."""
 
-    def __init__(self, n_envs: int, stage: int = 1, *, seed: int = 0, cfg: WorldConfig | None = None):
+    def __init__(self, n_envs: int, stage: int = 1, *, seed: int = 0, cfg: WorldConfig | None = None,
+                 scenes=None):
         self.cfg = cfg or WorldConfig()
         self.N, self.stage = n_envs, stage
+        self.source = scenes  # rng -> a scene, instead of :meth:`_scene` (stage 3: .course_scenes.CourseScenes)
         self.R = 1 if stage == 1 else self.cfg.robots
         self.rng = np.random.default_rng(seed)
         N, R, c = self.N, self.R, self.cfg
@@ -164,6 +168,7 @@ class DrlWorld:
         self.gx, self.gy, self.d_prev = z(), z(), z()
         self.a_prev = np.zeros((N, R, 2))
         self.active = np.ones((N, R), bool)
+        self.present = np.ones((N, R), bool)  # robots in the scene (a scene's spare robots are parked at FAR)
         self.anchor = np.zeros((N, R, 3))  # x, y, step where each robot last moved stall_move (stall_steps)
         self.stalled = np.zeros((N, R), bool)  # this step ended a robot's episode by standing still
         self.circles = np.zeros((N, c.max_circles, 3))
@@ -212,6 +217,8 @@ class DrlWorld:
 
     def _scene(self, rng):
         """(starts (R, 2), yaws (R,), goals (R, 2), circles, boxes)."""
+        if self.source is not None:
+            return self.source(rng)
         if self.R == 1:
             heading = rng.uniform(-math.pi, math.pi)
             # mostly roughly toward the target (as in a formation), a quarter of the time any way
@@ -241,13 +248,15 @@ class DrlWorld:
             starts, yaw, goals, self.circles[n], self.boxes[n] = scenes[j] if scenes is not None else self._scene(self.rng)
             self.x[n], self.y[n], self.yaw[n] = starts[:, 0], starts[:, 1], yaw
             self.gx[n], self.gy[n] = goals[:, 0], goals[:, 1]
-            self.trained[n] = self.rng.integers(self.R)
+            self.present[n] = starts[:, 0] < FAR / 2  # parked robots are not in the scene
+            live = np.flatnonzero(self.present[n])
+            self.trained[n] = self.rng.integers(self.R) if len(live) == self.R else live[self.rng.integers(len(live))]
         for a in (self.wl, self.wr, self.v, self.w):
             a[idx] = 0.0
         self.a_prev[idx] = 0.0
         self.anchor[idx] = np.stack([self.x[idx], self.y[idx], np.zeros_like(self.x[idx])], -1)
         self.stalled[idx] = False
-        self.active[idx] = True
+        self.active[idx] = self.present[idx]
         self.t[idx] = 0
         self.d_prev[idx] = np.hypot(self.gx[idx] - self.x[idx], self.gy[idx] - self.y[idx])
         if len(idx):
