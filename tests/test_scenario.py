@@ -71,6 +71,10 @@ BAD = [
     (lambda d: d["robot"].__setitem__("guard", {"brake": 2}), "robot.guard.brake: unknown field (allowed: decel, enabled, lag_s, margin, slide_after_s, slide_free)"),
     (lambda d: d["robot"].__setitem__("stuck", {"detour": {"lookahed": 2}}), "robot.stuck.detour.lookahed: unknown field"),
     (lambda d: d["robots"][0].__setitem__("stuck", {"window": 0}), "robots[0].stuck.window: must be > 0, got 0"),
+    (lambda d: d["robot"].__setitem__("guard", {"slide_after_s": -1}), "robot.guard.slide_after_s: must be >= 0, got -1"),
+    (lambda d: d["robots"][1].__setitem__("guard", {"slide_free": 0}), "robots[1].guard.slide_free: must be > 0, got 0"),
+    (lambda d: d["robot"].__setitem__("stuck", {"detour": {"straight_time": 0}}),
+     "robot.stuck.detour.straight_time: must be > 0, got 0"),
 ]
 
 
