@@ -158,6 +158,7 @@ def test_the_way_out_is_the_nearest_heading_whose_corridor_is_free():
     less = post_scan(0.0, 0.0, theta - math.radians(5), 0.45, -0.75, 0.2)
     assert g.free_distance(less) < 0.3  # and the nearest such heading (in 5 degree steps)
     assert g.way_out(np.full(BEAMS, 0.7)) is None  # walled in: none
+    assert g.way_out(np.full(BEAMS, RANGE)) == 0.0  # straight ahead is free: exactly 0 (the step then drives on)
 
 
 def _slide(cfg: GuardConfig, steps: int = 80) -> tuple[float, float, float, int]:

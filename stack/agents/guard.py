@@ -114,12 +114,12 @@ class CollisionGuard:
             return None
         hit = r < self.range_max - 1e-6
         ang, rr = self._ang[hit], r[hit]
-        half = float(self._ang[-1]) if len(self._ang) else 0.0
-        theta = np.arange(-half, half + 1e-9, WAY_OUT_STEP)
+        k = int(float(self._ang[-1]) / WAY_OUT_STEP + 1e-9) if len(self._ang) else 0
+        theta = WAY_OUT_STEP * np.arange(-k, k + 1)  # straight ahead exactly 0.0 among them
         rel = ang[None, :] - theta[:, None]  # each point's bearing from each candidate heading
         px, py = rr[None, :] * np.cos(rel), rr[None, :] * np.sin(rel)
         inside = (px > 0.0) & (np.abs(py) < self.R)
-        d = np.where(inside, px - np.sqrt(np.maximum(self.R ** 2 - py ** 2, 0.0)), np.inf).min(axis=1)
+        d = np.where(inside, px - np.sqrt(np.maximum(self.R ** 2 - py ** 2, 0.0)), np.inf).min(axis=1, initial=np.inf)
         ok = np.flatnonzero(d >= self.cfg.slide_free)
         if not len(ok):
             return None
