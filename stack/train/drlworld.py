@@ -347,6 +347,6 @@ def held_out_scenes(n: int, stage: int = 1, seed: int = 20260 + 1, max_walls: in
     """A fixed set of scenes (the held-out evaluation set; training seeds never reach this one's stream).
     ``max_walls`` 0: the paper's scenes (cuboids and cylinders randomly scattered, section V-A)."""
     w = DrlWorld.__new__(DrlWorld)
-    w.cfg, w.R = WorldConfig(max_walls=max_walls, robots=robots), 1 if stage == 1 else robots
+    w.cfg, w.R, w.source = WorldConfig(max_walls=max_walls, robots=robots), 1 if stage == 1 else robots, None
     rng = np.random.default_rng([seed, stage])
     return [w._scene(rng) for _ in range(n)]
