@@ -38,10 +38,15 @@ DEFAULT_POLICIES = ("drl", "aina", "qlearn", "pid")
 ALONE = {"drl": {"shield": False}, "guard": {"enabled": False}}
 """``drl-alone``: Bai's network without the safety layers under it (its action shield, the step's collision
 guard), the hybrid strategy and the stuck detector as they are: the course's own file with these settings."""
+LOCKSTEP_TIMEOUT_S = 30.0
+"""How long (wall) each run's world waits for an agent's command (``stack-fleet run --lockstep-timeout``; its
+default is 2 s). A lock-step world runs about ten times faster than real time, so an agent that computes for 5 s
+on a loaded machine (a long qlearn plan) would stand still for 50 s of sim time past that bound: the load, not the
+policy, would fail the run. A robot that still misses it is counted in ``late_step_runs``."""
 ARRIVAL_POLICIES = ("fuzzy", "fuzzy-lstm")  # Chang 2020, on generated arrival-time tasks (density "arrival")
 COLUMNS = ("policy", "density", "runs", "success", "collision_runs", "robot_robot", "robot_obstacle", "timeouts",
            "errors", "time_to_goal_s", "formation_error_rms_m", "arrival_spread_steps", "min_robot_distance_m",
-           "min_obstacle_distance_m")
+           "min_obstacle_distance_m", "late_step_runs")
 
 
 def outcome(rep: dict | None) -> str:
@@ -63,12 +68,12 @@ def row(task: dict, rep: dict | None, err: str, wall: float) -> dict:
     r |= {"outcome": outcome(rep), "error": err or None, "wall_s": round(wall, 1),
           "robot_robot": col.get("robot_robot"), "robot_obstacle": col.get("robot_obstacle")}
     for k in ("leader_time_to_goal_s", "formation_error_rms_m", "min_robot_distance_m", "min_obstacle_distance_m",
-              "sim_time_s", "end_reason", "arrival_spread_steps"):
+              "sim_time_s", "end_reason", "arrival_spread_steps", "late_steps"):
         r[k] = (rep or {}).get(k)
     return r
 
 
-def run_all(tasks: list[dict], eng, resume: bool) -> list[dict]:
+def run_all(tasks: list[dict], eng, resume: bool, lockstep_timeout: float = LOCKSTEP_TIMEOUT_S) -> list[dict]:
     """Every task's row: ``--resume`` keeps the runs that have a report.json, the others go to the engine."""
     rows, todo = [], []
     for t in tasks:
@@ -77,7 +82,8 @@ def run_all(tasks: list[dict], eng, resume: bool) -> list[dict]:
             rows.append(row(t, json.loads(rep_path.read_text()), "", 0.0))
         else:
             todo.append(t)
-    jobs = [Job(cli_task, (t["file"], t["out"], ("--policy", t["policy"].removesuffix("-alone"))),
+    wait = ("--lockstep-timeout", f"{lockstep_timeout:g}")
+    jobs = [Job(cli_task, (t["file"], t["out"], ("--policy", t["policy"].removesuffix("-alone"), *wait)),
                 f"{t['policy']} {t['density']} {t['seed']}") for t in todo]
     return rows + [row(t, *report_of(r)) for t, r in zip(todo, run_jobs(jobs, eng, desc="held-out"))]
 
@@ -152,6 +158,7 @@ def aggregate(rows: list[dict], policies: list[str], densities: list[str]) -> li
                 "min_robot_distance_m": min((r["min_robot_distance_m"] for r in rs if r["min_robot_distance_m"] is not None), default=None),
                 "min_obstacle_distance_m": min((r["min_obstacle_distance_m"] for r in rs if r["min_obstacle_distance_m"] is not None),
                                                default=None),
+                "late_step_runs": sum(bool(r.get("late_steps")) for r in rs),
             })
     return table
 
@@ -224,6 +231,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--drl-weights", type=Path, metavar="FILE",
                     help="drl and drl-alone run these weights (robot.drl.weights: a stack-train drl drl.pt or its .npz "
                          "export; default: the shipped ones)")
+    ap.add_argument("--lockstep-timeout", type=float, default=LOCKSTEP_TIMEOUT_S, metavar="S",
+                    help=f"how long (wall) each run's world waits for an agent's command before it goes on without it "
+                         f"(default {LOCKSTEP_TIMEOUT_S:g} s; the table counts runs with such late steps)")
     ap.add_argument("--resume", action="store_true", help="keep the runs that already have a report.json")
     ap.add_argument("--out", type=Path, default=Path("runs/heldout"))
     add_engine_args(ap)
@@ -233,6 +243,8 @@ def main(argv: list[str] | None = None) -> int:
     left = len(HELDOUT_SEEDS) - skip
     if a.first_seed not in HELDOUT_SEEDS:
         ap.error(f"--first-seed {a.first_seed}: expected a held-out seed, {HELDOUT_SEEDS.start}..{HELDOUT_SEEDS.stop - 1}")
+    if not a.lockstep_timeout > 0:
+        ap.error(f"--lockstep-timeout {a.lockstep_timeout:g}: expected > 0 s")
     if a.drl_weights is not None and not a.drl_weights.is_file():
         ap.error(f"--drl-weights {a.drl_weights}: no such file")
     if not 0 <= a.courses <= left or not 0 <= a.arrival <= left or not a.courses + a.arrival:
@@ -246,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"heldout: {e}", file=sys.stderr)
         return 2
     t0 = time.perf_counter()
-    rows = run_all(tasks, eng, a.resume)
+    rows = run_all(tasks, eng, a.resume, a.lockstep_timeout)
     policies, densities = a.policies + a.arrival_policies, a.densities + ["arrival"]
     rows.sort(key=lambda r: (policies.index(r["policy"]), densities.index(r["density"]), r["seed"]))
     table = aggregate(rows, policies, densities)

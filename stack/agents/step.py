@@ -198,15 +198,19 @@ class StepPipeline:
         (eq. 1; see stack/estimation/ekf.py for the order), then its device fix; then the step's fixes."""
         ekf = self.estimator
         for s in inp.odometry:
-            if self._t_odom is None:  # the first sample: where the robot is, in the site frame
+            if self._t_odom is None:
+                # the first sample: where the robot is, in the site frame. Its rates are those of the period
+                # before it, which nothing predicts over; fused, they would leave the next period's rates
+                # without the random walk of Q, and its measurement would be averaged with them (a leader that
+                # turned from its first step kept half that step's turn as a yaw error for the whole run)
                 ekf = self.estimator = PoseEKF(*self.frame.site_pose(s.pose), self.ekf_config)
             elif s.t < self._t_odom:
                 self.counters.out_of_order += 1
                 continue
-            ekf.update_odometry(s.v, s.w)
-            if s.wz_imu is not None:
-                ekf.update_gyro(s.wz_imu)
-            if self._t_odom is not None:
+            else:
+                ekf.update_odometry(s.v, s.w)
+                if s.wz_imu is not None:
+                    ekf.update_gyro(s.wz_imu)
                 ekf.predict(min(s.t - self._t_odom, self.cfg.max_gap_s))
             self._t_odom, self._odom_pose = s.t, s.pose
             if s.fix is not None:
