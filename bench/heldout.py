@@ -38,11 +38,13 @@ DEFAULT_POLICIES = ("drl", "aina", "qlearn", "pid")
 ALONE = {"drl": {"shield": False}, "guard": {"enabled": False}}
 """``drl-alone``: Bai's network without the safety layers under it (its action shield, the step's collision
 guard), the hybrid strategy and the stuck detector as they are: the course's own file with these settings."""
-LOCKSTEP_TIMEOUT_S = 30.0
+LOCKSTEP_TIMEOUT_S = 20.0
 """How long (wall) each run's world waits for an agent's command (``stack-fleet run --lockstep-timeout``; its
 default is 2 s). A lock-step world runs about ten times faster than real time, so an agent that computes for 5 s
 on a loaded machine (a long qlearn plan) would stand still for 50 s of sim time past that bound: the load, not the
-policy, would fail the run. A robot that still misses it is counted in ``late_step_runs``."""
+policy, would fail the run. A robot that still misses it is counted in ``late_step_runs``. It stays below an agent's
+30 s sensor timeout, so that an agent whose step stalled for another reason is given up on (and takes up the next
+step) before the agents give up on the world."""
 ARRIVAL_POLICIES = ("fuzzy", "fuzzy-lstm")  # Chang 2020, on generated arrival-time tasks (density "arrival")
 COLUMNS = ("policy", "density", "runs", "success", "collision_runs", "robot_robot", "robot_obstacle", "timeouts",
            "errors", "time_to_goal_s", "formation_error_rms_m", "arrival_spread_steps", "min_robot_distance_m",

@@ -77,7 +77,7 @@ def test_drl_weights_go_to_both_drl_kinds_and_nothing_else(tmp_path, capsys):
 
 
 def test_each_run_waits_for_a_slow_agent_and_the_table_counts_the_runs_that_still_went_on(tmp_path, monkeypatch, capsys):
-    """A loaded machine makes an agent late, not a policy fail: every run gets --lockstep-timeout (30 s by default,
+    """A loaded machine makes an agent late, not a policy fail: every run gets --lockstep-timeout (20 s by default,
     not stack-fleet's 2 s), and runs whose world still went on without an agent are counted per row."""
     tasks = heldout.plan(2, ["low"], ["pid"], tmp_path)
     seen = []
@@ -89,7 +89,7 @@ def test_each_run_waits_for_a_slow_agent_and_the_table_counts_the_runs_that_stil
     monkeypatch.setattr(heldout, "run_jobs", fake_jobs)
     monkeypatch.setattr(heldout, "report_of", lambda r: r)
     rows = heldout.run_all(tasks, None, False)
-    assert seen == [("--policy", "pid", "--lockstep-timeout", "30")] * 2
+    assert seen == [("--policy", "pid", "--lockstep-timeout", "20")] * 2
     assert heldout.aggregate(rows, ["pid"], ["low"])[0]["late_step_runs"] == 1
     heldout.run_all(tasks, None, False, lockstep_timeout=7.5)
     assert seen[-1][-1] == "7.5"

@@ -128,6 +128,7 @@ class Agent:
         self.fault = ""
         self.sensor_stale = 0  # times the robot was stopped because a stream went stale
         self.scans_from_driver = 0
+        self.odom_redelivered = 0  # older odometry samples a driver handed over after a newer one (dropped)
         self._stale: str | None = None
         self._mono0 = time.monotonic()
         self._odom_clock = StreamClock()
@@ -198,8 +199,13 @@ class Agent:
             fix = None if dfix is None else (dfix[0], dfix[1], dfix[2])
         arrival = self._now()
         with self._cv:
-            q = self._in.odometry
-            if raw is self._in.odom_raw:  # the same sample again: keep the one with the gyro rate
+            q, last = self._in.odometry, self._in.odom_raw
+            if last is not None and raw is not last and 0 <= raw.step < last.step:
+                self.odom_redelivered += 1  # an older step's sample handed over late: never the newest
+                if self.odom_redelivered == 1:
+                    log.warning("agent %d: odometry of step %d handed over after step %d's: dropped (counted in "
+                                "odom_redelivered)", self.id, raw.step, last.step)
+            elif raw is last:  # the same sample again: keep the one with the gyro rate
                 if q and odo.wz_imu is not None and q[-1][0].wz_imu is None and q[-1][0].step == odo.step:
                     q[-1] = (odo, fix, q[-1][2])
             else:
@@ -370,7 +376,8 @@ class Agent:
     def _lockstep_inputs(self) -> StepInputs | None:
         """Step k's inputs, once the barrier has them all; every time in them is the world's sim time."""
         with self._cv:
-            got = self.barrier.wait_step(self.step, self._sensors_ready, lambda: len(self._in.odometry), self.cfg.stop)
+            got = self.barrier.wait_step(self.step, self._sensors_ready, lambda: len(self._in.odometry), self.cfg.stop,
+                                         self._missing)
             if got is None:
                 return None
             clock, n_device = got
@@ -412,6 +419,13 @@ class Agent:
         if fix_due(self.robot, k, self.dt):
             return any(f.step == k for f in self._in.fixes)
         return True
+
+    def _missing(self, k: int) -> str:
+        """What step k still lacks, for the stall's error (caller holds the lock)."""
+        q, scan = self._in.odometry, self._in.scan
+        odo = "none" if not q else f"{q[-1][0].step}" + (" without its gyro rate" if q[-1][0].wz_imu is None else "")
+        return (f"newest scan of step {None if scan is None else scan.step}, newest odometry of step {odo}, "
+                f"a fix due: {fix_due(self.robot, k, self.dt)}")
 
     def _lidar_ready(self, k: int) -> bool:
         """Lock-step: step k's scans of the robot's own lidar are in, as many as the world's clock says its

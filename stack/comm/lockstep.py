@@ -201,11 +201,12 @@ class StepBarrier:
 
     # --- the agent's waits ------------------------------------------------------------------------
     def wait_step(self, last: int, ready: Callable[[int], bool], pending: Callable[[], int],
-                  stop: threading.Event) -> tuple[Clock, int | None] | None:
+                  stop: threading.Event, missing: Callable[[int], str] | None = None) -> tuple[Clock, int | None] | None:
         """Block (caller holds cv) until the newest step k > ``last`` has its clock and ``ready(k)`` (the
         scan, a step-carrying driver's sample, the gyro, a due fix), and ``pending()`` device samples number
         step k's count. Returns (clock k, how many of the newest pending samples are step k's; None: the robot
-        has no hosted device), or None on ``stop``. No clock or sensors for ``sensor_timeout_s`` is a TimeoutError."""
+        has no hosted device), or None on ``stop``. No clock or sensors for ``sensor_timeout_s`` is a TimeoutError
+        (``missing(k)`` says what step k lacked)."""
         deadline = time.monotonic() + self.sensor_timeout_s
         device_deadline: float | None = None
         while not stop.is_set():
@@ -222,7 +223,8 @@ class StepBarrier:
                                 self.id, k, pending(), need, self.device_wait_s)
                     break
             elif time.monotonic() > deadline:
-                raise TimeoutError(f"agent {self.id}: no sensor data from the world for {self.sensor_timeout_s:.0f} s")
+                what = (f" (step {k}: {missing(k)})" if k > last else f" (no clock after step {last})") if missing else ""
+                raise TimeoutError(f"agent {self.id}: no sensor data from the world for {self.sensor_timeout_s:.0f} s{what}")
             self._cv.wait(0.05)
         else:
             return None

@@ -57,9 +57,14 @@ class SimDriver(Driver):
             return
         with self._data_lock:
             self._wz = (m.step, m.wz)
+            latest = self._latest
         self._alive("imu")
-        if self._on_odom is not None and self._latest is not None:
-            self._on_odom(self._latest)
+        # the odometry of the same step, again, now with its gyro rate. Only that one: the odom and imu callbacks run
+        # on threads of their own, and an older sample handed over after the newer one had come (the imu of step k
+        # read step k-1's sample, the odom of step k then went first) stood in the agent's queue as its newest,
+        # without a gyro rate, and the lock-step agent waited for step k's for ever
+        if self._on_odom is not None and latest is not None and latest.step == m.step:
+            self._on_odom(latest)
 
     def _odom_cb(self, sample: zenoh.Sample) -> None:
         m = receive(sample, Odom, self._on_malformed)
