@@ -21,11 +21,13 @@ TIMING = ("wall_time_s", "control_loop_ms", "control_compute_ms", "state_latency
 ROBOTS = 2
 
 
-def _folder(tmp_path: Path, duration: float) -> Path:
+def _folder(tmp_path: Path, duration: float, goal: tuple[float, float] | None = None) -> Path:
     """A bench folder with one scenario: the test diamond's leader and one follower (few processes a fleet)."""
     folder = tmp_path / "scenarios"
     folder.mkdir()
     d = scenario_dict(duration=duration)
+    if goal is not None:
+        d["formation"]["goal"] = list(goal)
     d["robots"] = d["robots"][:ROBOTS]
     d["formation"]["slots"] = {1: d["formation"]["slots"][1]}
     d["bench"] = {"policies": ["pid"]}
@@ -122,7 +124,7 @@ def test_ctrl_c_stops_every_child_fleet_in_order(tmp_path, engine):
     """Ctrl-C (SIGINT to the terminal's process group) with two fleets running: exit 130, the run not yet started
     never starts, every agent got its SIGTERM (zero velocity on the way out), no process of the runs (nor a Dask
     worker) is left."""
-    folder = _folder(tmp_path, duration=120.0)
+    folder = _folder(tmp_path, duration=120.0, goal=(500.0, 0.0))  # no run ends by itself before the Ctrl-C
     out = tmp_path / "out"
     p = subprocess.Popen([sys.executable, "-m", "stack.fleet", "bench", "--scenarios", str(folder), "--out", str(out),
                           "--sweep", "loss=0", "--seeds", "3", *engine], cwd=ROOT, start_new_session=True,
