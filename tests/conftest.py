@@ -92,6 +92,20 @@ def run_fleet(scenario: Path, out: Path, *extra: str, timeout: float = 180) -> t
     return proc, (json.loads(rep.read_text()) if rep.exists() else None)
 
 
+@pytest.fixture(autouse=True)
+def _signals_as_they_were():
+    """Each test leaves SIGINT and SIGTERM as it found them. Code run in process (an agent's stop path sets both to
+    SIG_IGN on its way out) would otherwise leave this interpreter ignoring them, and every process a later test
+    starts inherits an ignored SIGINT: a Ctrl-C test's bench then ran on to the end."""
+    import signal
+
+    saved = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    yield
+    for sig, handler in saved.items():
+        if handler is not None and signal.getsignal(sig) is not handler:
+            signal.signal(sig, handler)
+
+
 @pytest.fixture
 def diamond(tmp_path: Path) -> Path:
     return write_scenario(tmp_path / "diamond.yaml", scenario_dict())

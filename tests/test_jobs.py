@@ -128,7 +128,7 @@ def test_ctrl_c_stops_every_child_fleet_in_order(tmp_path, engine):
     out = tmp_path / "out"
     p = subprocess.Popen([sys.executable, "-m", "stack.fleet", "bench", "--scenarios", str(folder), "--out", str(out),
                           "--sweep", "loss=0", "--seeds", "3", *engine], cwd=ROOT, start_new_session=True,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_sigint_default)
     try:
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline:  # every agent of both fleets up
@@ -151,6 +151,13 @@ def test_ctrl_c_stops_every_child_fleet_in_order(tmp_path, engine):
             log = (r / "logs" / f"agent-{rid}.log").read_text()
             assert "SIGTERM: stopping" in log, (r.name, rid, log[-500:])
     assert not _left(out, p.pid), _left(out, p.pid)
+
+
+def _sigint_default() -> None:
+    """The bench starts as a terminal starts it, SIGINT at its default, whatever this test process inherited (a
+    shell's background job, or a test run in process before, can leave SIGINT ignored, and an ignored SIGINT is
+    inherited across exec: the fresh-clone CI's bench then ran all its runs to the end)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def _left(out: Path, pgid: int, wait_s: float = 10.0) -> list[str]:
