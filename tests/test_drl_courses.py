@@ -7,6 +7,7 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -80,3 +81,79 @@ def test_a_short_stage_3_run_trains_from_the_shipped_weights_and_evaluates(tmp_p
     d = json.loads((out / "drl.json").read_text())
     assert d["episodes"] >= 6 and d["gradient_steps"] > 0 and (out / "drl.pt").exists()
     assert d["job"]["stage"] == 3 and d["evaluation"]["drl.pt"]["robots"] == 8
+
+
+# --- follow scenes (--follow): the targets move as the fleet's do ---------------------------------------------------
+def _follow_world(pool, n=3, **cfg) -> DrlWorld:
+    pool.progress = 0.0
+    return DrlWorld(n, 3, seed=3, scenes=pool, cfg=WorldConfig(robots=8, max_circles=24, max_boxes=24, max_steps=50,
+                                                            follow=True, **cfg))
+
+
+def test_a_followers_target_is_its_slot_round_the_leader_where_it_is_now():
+    from stack.models.geometry import slot_position
+    from stack.policies.drl.observation import ACTIONS
+
+    pool = CourseScenes(6, first_seed=40, follow=True)
+    w = _follow_world(pool)
+    slot, x0 = w.slot.copy(), w.x[:, 0].copy()
+    here = w.present.copy()
+    here[:, 0] = False
+    assert np.allclose(np.stack([w.gx, w.gy], -1)[here], np.stack([w.x, w.y], -1)[here])  # they start on their slots
+    a = np.full((3, 8), 12)  # everyone straight on at 1 m/s (index 5 * 2 + 2)
+    for _ in range(5):
+        w.step(a, ACTIONS)
+    for n in range(3):
+        for r in np.flatnonzero(here[n]):
+            L, psi = float(np.hypot(*slot[n, r])), float(np.arctan2(slot[n, r, 1], slot[n, r, 0]))
+            p = slot_position((w.x[n, 0], w.y[n, 0]), SimpleNamespace(L=L, psi=psi))
+            assert np.allclose((w.gx[n, r], w.gy[n, r]), p, atol=1e-9)  # eq. (3) round the leader now
+    assert np.all(w.x[:, 0] - x0 > 0.2)  # the leader drove on, and the targets with it
+
+
+def test_a_follower_on_its_moving_slot_does_not_arrive_until_its_leader_has_stopped():
+    from stack.policies.drl.observation import ACTIONS
+
+    pool = CourseScenes(6, first_seed=40, follow=True)
+    w = _follow_world(pool, n=1)
+    a = np.full((1, 8), 12)
+    a[0, 1:] = 2  # the followers stand still on their slots (v 0, w 0) while the leader drives off
+    _, arrived, _, _, _ = w.step(a, ACTIONS)
+    assert not arrived[0, 1:].any()  # on its slot, but the slot moves on
+    w.active[0, 0] = False  # the leader stops (as when it arrives): the slots stand still
+    w.gx[0, 1:], w.gy[0, 1:] = w.x[0, 1:], w.y[0, 1:]
+    w.slot[0, 1:] = np.stack([w.x[0, 1:] - w.x[0, 0], w.y[0, 1:] - w.y[0, 0]], -1)
+    _, arrived, _, _, _ = w.step(np.full((1, 8), 2), ACTIONS)
+    assert arrived[0, 1:][w.present[0, 1:]].all()
+
+
+def test_the_leader_of_a_follow_scene_drives_at_the_agents_leader_speed():
+    from stack.agents.decision import DecisionLayer
+
+    pool = CourseScenes(6, first_seed=40, follow=True)
+    w = _follow_world(pool, n=2)
+    w.x[0, 1] = w.x[0, 0] - 7.0  # a follower 7 m behind: eq. (20) gives 5/7; the hold 1 (< 8 m)
+    w.y[0, 1] = w.y[0, 0]
+    w.x[1, 1], w.y[1, 1] = w.x[1, 0] - 9.0, w.y[1, 0]  # 9 m: 5/9 of it, the hold a third of that
+    v = w._leader_speed(np.array([1.0, 1.0]))
+    for n in range(2):
+        d = float(np.max(np.hypot(w.x[n] - w.x[n, 0], w.y[n] - w.y[n, 0])[w.present[n]]))
+        assert v[n] == pytest.approx(DecisionLayer.leader_speed(1.0, d, hold=(0.8, 0.95)))
+    assert v[0] == pytest.approx(5 / 7) and v[1] == pytest.approx(5 / 9 * (9.5 - 9.0) / 1.5)
+
+
+def test_a_robot_waiting_on_its_target_is_not_stalled():
+    from stack.policies.drl.observation import ACTIONS
+
+    pool = CourseScenes(6, first_seed=40, follow=True)
+    w = _follow_world(pool, n=1, stall_steps=5)
+    w.active[0, 0] = False  # the leader stands: the followers wait on their slots, which do not move
+    for _ in range(8):
+        w.step(np.full((1, 8), 2), ACTIONS)
+    assert not w.stalled.any()
+
+
+def test_follow_is_a_stage_3_flag():
+    r = subprocess.run([sys.executable, "-m", "stack.train", "drl", "--stage", "2", "--follow"], capture_output=True,
+                       text=True, cwd=ROOT, timeout=60)
+    assert r.returncode == 2 and "--follow" in r.stderr and "Traceback" not in r.stderr

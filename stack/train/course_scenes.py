@@ -10,6 +10,9 @@ corridor (every robot at least ``clear`` off every obstacle); each robot's targe
 reachable by a disc of the robot's radius (the flood fill of :func:`.drlworld.reachable`). Robots beyond the
 course's count are parked far away and inactive (:meth:`.drlworld.DrlWorld.reset`).
 
+``follow`` scenes (``stack-train drl --stage 3 --follow``, :class:`.drlworld.WorldConfig`'s ``follow``): the same
+stretches, the targets :data:`SHIFT_FOLLOW` on, the leader's moving and the followers' slots moving with it.
+
 Curriculum (``progress`` = episodes done / episodes): below 1/3 only ``low`` courses of 3-4 robots, below 2/3
 ``low`` and ``medium`` of 3-6 robots, then every density and 3-8 robots.
 """
@@ -32,6 +35,8 @@ REACH_CELL = 0.2
 """[m] the reachability flood fill's cell (coarse: a scene is drawn at every episode's start)."""
 SHIFT = (5.0, 14.0)
 """[m] how far down the corridor the targets lie from the starts (stage 2's common shift)."""
+SHIFT_FOLLOW = (10.0, 25.0)
+"""[m] the same in ``follow`` scenes: a longer way beside the neighbours, as in a fleet run."""
 
 
 def heldout_clash(first_seed: int, n: int) -> str | None:
@@ -65,10 +70,11 @@ class CourseScenes:
     """A pool of generated courses (seeds ``first_seed`` ..), and scenes cut from them (:meth:`__call__`)."""
 
     def __init__(self, n: int, first_seed: int = 0, *, max_circles: int = 24, max_boxes: int = 24,
-                 clear: float = 0.3, robots: int = MAX_ROBOTS):
+                 clear: float = 0.3, robots: int = MAX_ROBOTS, follow: bool = False):
         if heldout_clash(first_seed, n):
             raise ValueError(heldout_clash(first_seed, n))
         self.R, self.clear, self.progress = robots, clear, 0.0
+        self.shift = SHIFT_FOLLOW if follow else SHIFT
         self.pool = [self._course(first_seed + k, k, max_circles, max_boxes) for k in range(n)]
 
     def _course(self, seed: int, k: int, max_circles: int, max_boxes: int) -> PoolCourse:
@@ -98,14 +104,14 @@ class CourseScenes:
                 c.circles, c.boxes)
 
     def _place(self, rng: np.random.Generator, c: PoolCourse, tries: int = 30) -> tuple[np.ndarray, np.ndarray]:
-        """The formation at a random point of the corridor, the targets 5-14 m on; where no try fits, the course's
-        own start (its field begins 6 m ahead) with the targets 5 m on."""
+        """The formation at a random point of the corridor, the targets ``shift`` (5-14 m) on; where no try fits,
+        the course's own start (its field begins 6 m ahead) with the targets the shortest shift on."""
         for _ in range(tries):
-            starts = c.offsets + [float(rng.uniform(0.0, max(c.length - SHIFT[1], 0.0))), 0.0]
-            goals = starts + [float(rng.uniform(*SHIFT)), 0.0]
+            starts = c.offsets + [float(rng.uniform(0.0, max(c.length - self.shift[1], 0.0))), 0.0]
+            goals = starts + [float(rng.uniform(*self.shift)), 0.0]
             if self._fits(c, starts, goals):
                 return starts, goals
-        return c.offsets.copy(), c.offsets + [SHIFT[0], 0.0]
+        return c.offsets.copy(), c.offsets + [self.shift[0], 0.0]
 
     def _fits(self, c: PoolCourse, starts: np.ndarray, goals: np.ndarray) -> bool:
         pts = np.vstack([starts, goals])

@@ -106,6 +106,9 @@ class DrlJob:
     """stage 3: the pool's first course seed (training seeds; the held-out 1,000,000.. are refused)"""
     eval_course_seed: int = flag(900, type=nonnegative_int)
     """stage 3: the first seed of the 30 courses the end-of-training evaluation cuts its scenes from"""
+    follow: bool = False
+    """stage 3 (ours): the targets move as in a fleet: robot 0 leads (eq. 20 and the hold), the others drive to
+    their slots round it (eq. 3) for 10-25 m and arrive only once it has stopped"""
     max_walls: int = flag(2, name="--walls", choices=range(0, 4), metavar="N")
     """walls (2-10 m, across the way) per training / held-out scene, 0..N (0: the paper's randomly scattered
     cuboids and cylinders)"""
@@ -273,13 +276,14 @@ class NStep:
 
 # --- evaluation ------------------------------------------------------------------------------------
 def evaluate(net, *, stage: int = 1, episodes: int = 200, seed: int = HELD_OUT_SEED, max_steps: int = 500,
-             epsilon: float = 0.0, max_walls: int = 2, robots: int = 4, course_seed: int = 900) -> dict:
+             epsilon: float = 0.0, max_walls: int = 2, robots: int = 4, course_seed: int = 900,
+             follow: bool = False) -> dict:
     """Greedy run of ``net`` on the held-out scenes: success / collision / timeout rates.
 
     Stage 1: one robot per scene. Stage 2: all four robots drive with ``net``; a scene succeeds
     when every robot arrives, fails by collision when any collides. Stage 3: the same on scenes cut
     from the courses of seeds ``course_seed`` .. (not the training pool's; every curriculum level). ``epsilon``: the chance of a
-    random action per step (the policy's ``explore``; 0: greedy)."""
+    random action per step (the policy's ``explore``; 0: greedy). ``follow``: stage 3's moving slots."""
     import torch
 
     from stack.policies.drl.observation import ACTIONS
@@ -287,10 +291,10 @@ def evaluate(net, *, stage: int = 1, episodes: int = 200, seed: int = HELD_OUT_S
     from .drlworld import DrlWorld, WorldConfig, held_out_scenes
 
     if stage == 3:  # scenes cut from courses no training pool holds, every curriculum level
-        pool = course_pool(EVAL_COURSES, course_seed, log=lambda *_: None)
+        pool = course_pool(EVAL_COURSES, course_seed, log=lambda *_: None, follow=follow)
         pool.progress, rng = 1.0, np.random.default_rng([seed, stage])
         scenes = [pool(rng) for _ in range(episodes)]
-        cfg = WorldConfig(max_steps=max_steps, **COURSE_WORLD)
+        cfg = WorldConfig(max_steps=max_steps, follow=follow, **COURSE_WORLD)
     else:
         scenes = held_out_scenes(episodes, stage, seed, max_walls, robots)
         cfg = WorldConfig(max_steps=max_steps, max_walls=max_walls, robots=robots)
@@ -315,16 +319,17 @@ def evaluate(net, *, stage: int = 1, episodes: int = 200, seed: int = HELD_OUT_S
         steps[live] = t + 1
     succ = (arrived | ~w.present).all(axis=1) & ~collided.any(axis=1)  # every robot in the scene arrived
     coll = collided.any(axis=1)
-    return {"episodes": episodes, "stage": stage, "seed": seed, "epsilon": epsilon, "max_walls": max_walls, "robots": w.R, "success": float(succ.mean()), "collision": float(coll.mean()),
+    return {"episodes": episodes, "stage": stage, "seed": seed, "epsilon": epsilon, "max_walls": max_walls, "robots": w.R,
+            "follow": follow, "success": float(succ.mean()), "collision": float(coll.mean()),
             "timeout": float((~succ & ~coll).mean()), "mean_steps_success": float(steps[succ].mean()) if succ.any() else None}
 
 
-def course_pool(n: int, first_seed: int, log=print):
+def course_pool(n: int, first_seed: int, log=print, follow: bool = False):
     """Stage 3's scenes: :class:`.course_scenes.CourseScenes` of ``n`` generated courses."""
     from .course_scenes import CourseScenes
 
     t0 = time.monotonic()
-    pool = CourseScenes(n, first_seed)
+    pool = CourseScenes(n, first_seed, follow=follow)
     log(f"stage 3: {n} generated courses (seeds {first_seed}..{first_seed + n - 1}) in {time.monotonic() - t0:.1f} s")
     return pool
 
@@ -352,11 +357,11 @@ class _Training:
         self.L = Learner(job, net)
         self.frozen = DuelingQNet()  # theta~ of the other robots (stage 2)
         self.frozen.load_state_dict(net.state_dict())
-        self.scenes = course_pool(job.courses, job.course_seed, log) if job.stage == 3 else None
+        self.scenes = course_pool(job.courses, job.course_seed, log, job.follow) if job.stage == 3 else None
         size = COURSE_WORLD if job.stage == 3 else {"robots": job.robots}
         self.world = DrlWorld(job.envs, job.stage, seed=job.seed, scenes=self.scenes, cfg=WorldConfig(
             max_steps=job.max_steps, time_penalty=job.time_penalty, stall_steps=job.stall_steps,
-            max_walls=job.max_walls, **size))
+            max_walls=job.max_walls, follow=job.follow, **size))
         self.N, self.R = self.world.N, self.world.R
         self.D = Replay(job.memory, self.world.cfg.beams, self.R - 1, self.rng)
         self.nstep = NStep(self.D, job.n_step, job.gamma, self.N)
@@ -484,7 +489,7 @@ class _Training:
                 nets["best.pt"].load_state_dict(self.torch.load(job.out / "best.pt", weights_only=True))
             ev = {k: evaluate(net, stage=job.stage, episodes=job.eval_episodes, max_steps=job.max_steps,
                               max_walls=job.max_walls, robots=job.robots, seed=job.eval_seed,
-                              course_seed=job.eval_course_seed) for k, net in nets.items()}
+                              course_seed=job.eval_course_seed, follow=job.follow) for k, net in nets.items()}
             for k, v in ev.items():
                 self.log(f"held-out {k}: success {v['success']:.3f}, collision {v['collision']:.3f}, timeout {v['timeout']:.3f}")
         summary = _write_json(job, self.curve, self.losses, self.steps, wall, ev)
@@ -544,6 +549,8 @@ def main(args: argparse.Namespace) -> int:
     for path in (job.evaluate, job.init):
         if path is not None and not path.exists():
             raise InputError(f"{path}: no such weights file")
+    if job.follow and job.stage != 3:
+        raise InputError(f"--follow: only stage 3 has a leader to follow (got --stage {job.stage})")
     if job.stage == 3:
         from .course_scenes import heldout_clash
 
@@ -563,7 +570,7 @@ def main(args: argparse.Namespace) -> int:
         net.load_state_dict(torch.load(job.evaluate, map_location="cpu", weights_only=True))
         print(json.dumps(evaluate(net, stage=job.stage, episodes=job.eval_episodes or 200, max_steps=job.max_steps,
                                   max_walls=job.max_walls, robots=job.robots, seed=job.eval_seed,
-                                  course_seed=job.eval_course_seed)))
+                                  course_seed=job.eval_course_seed, follow=job.follow)))
         return 0
     train(job)
     return 0

@@ -12,6 +12,11 @@ stage 2) among circles and boxes (walls are boxes, :meth:`stack.scenario.Obstacl
   the centre to an obstacle surface < R_d, within 0.5 m of the target (eq. 15).
 - A robot that arrived or collided stops (it stays as an obstacle); an environment is done when
   its trained robot stops or after ``max_steps`` (a timeout, not a terminal state).
+- ``follow`` scenes (ours, stage 3 ``--follow``): the targets move as the fleet's do. Robot 0 leads to
+  its target at the speed of eq. (20) and the connectivity hold (the agent's own
+  :meth:`stack.agents.decision.DecisionLayer.leader_speed`); every follower's target is its slot round
+  the leader's position now (eq. 3, the slot = its start relative to the leader's), so a follower
+  drives beside its neighbours for the whole way and arrives only once its leader has stopped.
 
 Scenes (section V-A 1, Fig. 7): stage 1 one robot among random cylinders, boxes and walls, the
 target a random distance away; stage 2 four robots in a formation-like layout (within 10 m of
@@ -31,7 +36,7 @@ from stack.models.geometry import polar_array
 from stack.models.kinematics import arc_step_array, body_rates, ramp, wheel_speeds
 from stack.models.observation import neighbour_polar_array
 from stack.policies.drl.observation import BEAMS, D_COM, N_SCANS, goal_features, neighbour_features
-from stack.policies.drl.reward import R_D, reward
+from stack.policies.drl.reward import GOAL_TOL, R_D, reward
 
 FAR = 1.0e4  # padding obstacles live here
 
@@ -57,6 +62,8 @@ class WorldConfig:
     stall_steps: int = 0  # training only: a robot that has moved less than stall_move in this many steps ends its
     stall_move: float = 0.1  # episode with -stall_penalty, like a collision (0: off, the paper's episodes)
     stall_penalty: float = 1.0
+    follow: bool = False  # robot 0 leads, the others' targets are their slots round it (module docstring)
+    leader_hold: tuple[float, float] | None = (0.8, 0.95)  # follow: DrlConfig.leader_hold's default
 
 
 def scene_arrays(obstacles, max_circles: int | None = None, max_boxes: int | None = None):
@@ -166,6 +173,7 @@ class DrlWorld:
         z = lambda: np.zeros((N, R))  # noqa: E731
         self.x, self.y, self.yaw, self.wl, self.wr, self.v, self.w = (z() for _ in range(7))
         self.gx, self.gy, self.d_prev = z(), z(), z()
+        self.slot = np.zeros((N, R, 2))  # follow: each robot's place relative to the leader's (eq. 3's offset)
         self.a_prev = np.zeros((N, R, 2))
         self.active = np.ones((N, R), bool)
         self.present = np.ones((N, R), bool)  # robots in the scene (a scene's spare robots are parked at FAR)
@@ -248,6 +256,7 @@ class DrlWorld:
             starts, yaw, goals, self.circles[n], self.boxes[n] = scenes[j] if scenes is not None else self._scene(self.rng)
             self.x[n], self.y[n], self.yaw[n] = starts[:, 0], starts[:, 1], yaw
             self.gx[n], self.gy[n] = goals[:, 0], goals[:, 1]
+            self.slot[n] = starts - starts[0]
             self.present[n] = starts[:, 0] < FAR / 2  # parked robots are not in the scene
             live = np.flatnonzero(self.present[n])
             self.trained[n] = self.rng.integers(self.R) if len(live) == self.R else live[self.rng.integers(len(live))]
@@ -258,6 +267,8 @@ class DrlWorld:
         self.stalled[idx] = False
         self.active[idx] = self.present[idx]
         self.t[idx] = 0
+        if self.cfg.follow:  # the followers' targets: their slots round the leader now (the scene's goals are
+            self._move_slots()  # where they end up)
         self.d_prev[idx] = np.hypot(self.gx[idx] - self.x[idx], self.gy[idx] - self.y[idx])
         if len(idx):
             s = self._lidar(idx)
@@ -288,6 +299,23 @@ class DrlWorld:
             r = r + self.rng.normal(0.0, c.noise_std, r.shape)
         return (np.clip(r, 0.0, c.scan_range) / c.scan_range).astype(np.float32)
 
+    def _leader_speed(self, v: np.ndarray) -> np.ndarray:
+        """Follow scenes: the leader's commanded speed (N,) after eq. (20) and the hold, d_rmax over the robots
+        in the scene (the agent's rule, :meth:`stack.agents.decision.DecisionLayer.leader_speed`)."""
+        from stack.agents.decision import DecisionLayer
+
+        d = np.hypot(self.x - self.x[:, :1], self.y - self.y[:, :1])
+        d_rmax = np.where(self.present, d, 0.0).max(axis=1)
+        return np.array([DecisionLayer.leader_speed(float(vi), float(di), hold=self.cfg.leader_hold, d_com=D_COM)
+                         for vi, di in zip(v, d_rmax)])
+
+    def _move_slots(self) -> None:
+        """Follow scenes: every follower's target is its slot round the leader where it is now (eq. 3)."""
+        f = self.present.copy()
+        f[:, 0] = False
+        self.gx = np.where(f, self.x[:, :1] + self.slot[..., 0], self.gx)
+        self.gy = np.where(f, self.y[:, :1] + self.slot[..., 1], self.gy)
+
     def _robot_distances(self) -> np.ndarray:
         """(N, R, R) centre distances, inf on the diagonal."""
         d = np.hypot(self.x[:, :, None] - self.x[:, None], self.y[:, :, None] - self.y[:, None])
@@ -313,6 +341,9 @@ class DrlWorld:
         c = self.cfg
         a = table[actions].astype(float)  # (N, R, 2)
         a[~self.active] = 0.0
+        leading = self.active[:, 0].copy()
+        if c.follow:
+            a[:, 0, 0] = self._leader_speed(a[:, 0, 0])
         v_c, w_c = a[..., 0], a[..., 1]
         wl_t, wr_t = wheel_speeds(v_c, w_c, c.track, c.wheel_radius)  # the pybullet world's drive (stack.models)
         dmax = c.wheel_accel * c.dt
@@ -320,10 +351,16 @@ class DrlWorld:
         self.v, self.w = body_rates(self.wl, self.wr, c.track, c.wheel_radius)
         self.x, self.y, self.yaw = arc_step_array(self.x, self.y, self.yaw, self.v, self.w, c.dt)
         self.t += 1
+        can_arrive = True
+        if c.follow:
+            self._move_slots()
+            can_arrive = np.ones((self.N, self.R), bool)
+            can_arrive[:, 1:] = ~leading[:, None]  # a follower's slot stands still once its leader has stopped
         d_now = np.hypot(self.gx - self.x, self.gy - self.y)
         d_rob = self._robot_distances().min(axis=2) if self.R > 1 else np.full((self.N, 1), np.inf)
         d_obs = obstacle_distance(self.x, self.y, self.circles[:, None], self.boxes[:, None])
-        r, arrived, collided = reward(self.d_prev, d_now, d_rob, d_obs, self.a_prev, a, c.radius, c.time_penalty)
+        r, arrived, collided = reward(self.d_prev, d_now, d_rob, d_obs, self.a_prev, a, c.radius, c.time_penalty,
+                                      can_arrive)
         r = np.where(self.active, r, 0.0)
         arrived &= self.active
         collided &= self.active & ~arrived
@@ -331,6 +368,7 @@ class DrlWorld:
         self.stalled[:] = False
         if c.stall_steps:  # training only: standing (or turning on the spot) for stall_steps ends the episode
             moved = np.hypot(self.x - self.anchor[..., 0], self.y - self.anchor[..., 1]) > c.stall_move
+            moved |= d_now <= GOAL_TOL  # waiting on its (follow: moving) target is not standing still
             self.anchor[moved] = np.stack([self.x[moved], self.y[moved], np.broadcast_to(self.t[:, None], moved.shape)[moved]], -1)
             self.stalled = self.active & (self.t[:, None] - self.anchor[..., 2] >= c.stall_steps)
             r = np.where(self.stalled, r - c.stall_penalty, r)
