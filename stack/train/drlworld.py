@@ -179,6 +179,7 @@ class DrlWorld:
         self.present = np.ones((N, R), bool)  # robots in the scene (a scene's spare robots are parked at FAR)
         self.anchor = np.zeros((N, R, 3))  # x, y, step where each robot last moved stall_move (stall_steps)
         self.stalled = np.zeros((N, R), bool)  # this step ended a robot's episode by standing still
+        self.held = np.zeros(N, bool)  # follow: the hold slowed the leader this step
         self.circles = np.zeros((N, c.max_circles, 3))
         self.boxes = np.zeros((N, c.max_boxes, 5))
         self.scans = np.zeros((N, R, N_SCANS, c.beams), np.float32)  # normalised, newest last
@@ -301,13 +302,17 @@ class DrlWorld:
 
     def _leader_speed(self, v: np.ndarray) -> np.ndarray:
         """Follow scenes: the leader's commanded speed (N,) after eq. (20) and the hold, d_rmax over the robots
-        in the scene (the agent's rule, :meth:`stack.agents.decision.DecisionLayer.leader_speed`)."""
+        still driving (the agent's rule, :meth:`stack.agents.decision.DecisionLayer.leader_speed`; a robot that
+        stopped holds no one, as the fleet's hold gives up on a robot that does not come). Sets ``held``: where
+        the hold, not the network, slowed the leader."""
         from stack.agents.decision import DecisionLayer
 
         d = np.hypot(self.x - self.x[:, :1], self.y - self.y[:, :1])
-        d_rmax = np.where(self.present, d, 0.0).max(axis=1)
-        return np.array([DecisionLayer.leader_speed(float(vi), float(di), hold=self.cfg.leader_hold, d_com=D_COM)
-                         for vi, di in zip(v, d_rmax)])
+        d_rmax = np.where(self.active, d, 0.0).max(axis=1)
+        out = np.array([DecisionLayer.leader_speed(float(vi), float(di), hold=self.cfg.leader_hold, d_com=D_COM)
+                        for vi, di in zip(v, d_rmax)])
+        self.held = out < v - 1e-9
+        return out
 
     def _move_slots(self) -> None:
         """Follow scenes: every follower's target is its slot round the leader where it is now (eq. 3)."""
@@ -369,6 +374,8 @@ class DrlWorld:
         if c.stall_steps:  # training only: standing (or turning on the spot) for stall_steps ends the episode
             moved = np.hypot(self.x - self.anchor[..., 0], self.y - self.anchor[..., 1]) > c.stall_move
             moved |= d_now <= GOAL_TOL  # waiting on its (follow: moving) target is not standing still
+            if c.follow:
+                moved[:, 0] |= self.held  # nor is a leader the hold slows
             self.anchor[moved] = np.stack([self.x[moved], self.y[moved], np.broadcast_to(self.t[:, None], moved.shape)[moved]], -1)
             self.stalled = self.active & (self.t[:, None] - self.anchor[..., 2] >= c.stall_steps)
             r = np.where(self.stalled, r - c.stall_penalty, r)
