@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT))
 from fleetrun import engine, report_of  # noqa: E402  (bench/, beside this script)
 
 from stack.fleet.arrival_tasks import generate_arrival_task, write_task  # noqa: E402
-from stack.fleet.courses import DENSITIES, HELDOUT_SEEDS, CourseError, generate_course, write_course  # noqa: E402
+from stack.fleet.courses import DENSITIES, HELDOUT_SEEDS, TUNE_SEEDS, CourseError, generate_course, write_course  # noqa: E402
 from stack.fleet.jobs import Job, add_engine_args, cli_task, run_jobs  # noqa: E402
 
 POLICIES = ("drl", "aina", "qlearn", "pid", "drl-alone")
@@ -103,13 +103,14 @@ def _variant(c, policy: str, weights: Path | None) -> dict | None:
 
 
 def plan(courses: int, densities: list[str], policies: list[str], out: Path, skip: int = 0,
-         drl_weights: Path | None = None) -> list[dict]:
-    """Write the held-out courses (seeds ``skip`` on into the held-out range) under OUT/courses/<density>/ and list
-    the runs."""
+         drl_weights: Path | None = None, seeds: range = HELDOUT_SEEDS) -> list[dict]:
+    """Write the courses (seeds ``skip`` on into ``seeds``: the held-out range, or TUNE_SEEDS for ``--tuning``) under
+    OUT/courses/<density>/ and list the runs."""
     tasks = []
+    purpose = "heldout" if seeds is HELDOUT_SEEDS else "tune"
     for d in densities:
-        for seed in HELDOUT_SEEDS[skip:skip + courses]:
-            c = generate_course(seed, density=d, purpose="heldout")
+        for seed in seeds[skip:skip + courses]:
+            c = generate_course(seed, density=d, purpose=purpose)
             path = write_course(c, out / "courses" / d / f"{c.scenario['name']}.yaml")
             for p in policies:
                 if p.removesuffix("-alone") not in c.scenario["bench"]["policies"]:
@@ -165,13 +166,13 @@ def aggregate(rows: list[dict], policies: list[str], densities: list[str]) -> li
     return table
 
 
-def markdown(table: list[dict], seeds: range, command: str) -> str:
+def markdown(table: list[dict], seeds: range, command: str, kind: str = "Held-out") -> str:
     def cell(k, v):
         if v is None:
             return "-"
         return f"{100 * v:.0f} %" if k == "success" else f"{v:.2f}" if isinstance(v, float) else str(v)
 
-    lines = [f"Held-out seeds {seeds.start}..{seeds.stop - 1}: courses at each density (`stack.fleet.courses`, "
+    lines = [f"{kind} seeds {seeds.start}..{seeds.stop - 1}: courses at each density (`stack.fleet.courses`, "
              "docs/courses.md) and arrival-time tasks (`stack.fleet.arrival_tasks`, density `arrival`); time to goal "
              "(the leader's) and arrival spread over successful runs; formation error RMS over all runs.", "",
              "| " + " | ".join(COLUMNS) + " |", "|" + " --- |" * len(COLUMNS)]
@@ -224,12 +225,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--policies", type=_list(POLICIES), default=list(DEFAULT_POLICIES),
                     help=f"comma-separated, of {', '.join(POLICIES)} (default {','.join(DEFAULT_POLICIES)}; drl-alone: "
                          "the network without its shield and the collision guard)")
-    ap.add_argument("--arrival", type=int, default=34, metavar="N",
-                    help="held-out arrival-time tasks for fuzzy and fuzzy-lstm (Chang 2020; 0: none)")
+    ap.add_argument("--arrival", type=int, default=None, metavar="N",
+                    help="held-out arrival-time tasks for fuzzy and fuzzy-lstm (Chang 2020; 0: none; default 34, "
+                         "with --tuning 0)")
     ap.add_argument("--arrival-policies", type=_list(ARRIVAL_POLICIES), default=list(ARRIVAL_POLICIES))
-    ap.add_argument("--first-seed", type=int, default=HELDOUT_SEEDS.start, metavar="S",
-                    help=f"the first held-out seed (default {HELDOUT_SEEDS.start}); a seed once reported is spent: a table "
+    ap.add_argument("--first-seed", type=int, default=None, metavar="S",
+                    help=f"the first held-out seed (default {HELDOUT_SEEDS.start}; --tuning: {TUNE_SEEDS.start}); a seed once reported is spent: a table "
                          "after a change takes the seeds after it")
+    ap.add_argument("--tuning", action="store_true",
+                    help=f"courses of the tuning seeds ({TUNE_SEEDS.start}..{TUNE_SEEDS.stop - 1}, --first-seed among "
+                         "them) instead of the held-out ones: for choosing between weights or settings without spending "
+                         "held-out seeds (a table of these is a smoke test, not a result; no arrival tasks)")
     ap.add_argument("--drl-weights", type=Path, metavar="FILE",
                     help="drl and drl-alone run these weights (robot.drl.weights: a stack-train drl drl.pt or its .npz "
                          "export; default: the shipped ones)")
@@ -241,10 +247,16 @@ def main(argv: list[str] | None = None) -> int:
     add_engine_args(ap)
     a = ap.parse_args(argv)
     eng = engine(ap, a)
-    skip = a.first_seed - HELDOUT_SEEDS.start
-    left = len(HELDOUT_SEEDS) - skip
-    if a.first_seed not in HELDOUT_SEEDS:
-        ap.error(f"--first-seed {a.first_seed}: expected a held-out seed, {HELDOUT_SEEDS.start}..{HELDOUT_SEEDS.stop - 1}")
+    pool = TUNE_SEEDS if a.tuning else HELDOUT_SEEDS
+    a.first_seed = pool.start if a.first_seed is None else a.first_seed
+    a.arrival = (0 if a.tuning else 34) if a.arrival is None else a.arrival
+    if a.tuning and a.arrival:
+        ap.error(f"--tuning --arrival {a.arrival}: arrival-time tasks come from held-out seeds only (give --arrival 0)")
+    skip = a.first_seed - pool.start
+    left = len(pool) - skip
+    if a.first_seed not in pool:
+        ap.error(f"--first-seed {a.first_seed}: expected a {'tuning' if a.tuning else 'held-out'} seed, "
+                 f"{pool.start}..{pool.stop - 1}")
     if not a.lockstep_timeout > 0:
         ap.error(f"--lockstep-timeout {a.lockstep_timeout:g}: expected > 0 s")
     if a.drl_weights is not None and not a.drl_weights.is_file():
@@ -253,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--courses {a.courses}, --arrival {a.arrival}: expected 0..{left} each from seed {a.first_seed}, not both 0")
     try:
         tasks = plan(a.courses, a.densities, a.policies, a.out.resolve(), skip,
-                     a.drl_weights.resolve() if a.drl_weights else None)
+                     a.drl_weights.resolve() if a.drl_weights else None, pool)
         tasks += plan_arrival(a.arrival, a.arrival_policies, a.out.resolve(), skip)
         tasks.sort(key=lambda t: t["seed"])  # seed-major: a run cut short leaves whole seeds; --resume goes on
     except CourseError as e:
@@ -265,8 +277,8 @@ def main(argv: list[str] | None = None) -> int:
     rows.sort(key=lambda r: (policies.index(r["policy"]), densities.index(r["density"]), r["seed"]))
     table = aggregate(rows, policies, densities)
     command = "python bench/heldout.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    seeds = HELDOUT_SEEDS[skip:skip + max(a.courses, a.arrival)]
-    md = markdown(table, seeds, command) + f"wall time {time.perf_counter() - t0:.0f} s, {eng.jobs} job(s), engine {eng.engine}\n"
+    seeds = pool[skip:skip + max(a.courses, a.arrival)]
+    md = markdown(table, seeds, command, "Tuning" if a.tuning else "Held-out") + f"wall time {time.perf_counter() - t0:.0f} s, {eng.jobs} job(s), engine {eng.engine}\n"
     a.out.mkdir(parents=True, exist_ok=True)
     (a.out / "heldout.md").write_text(md)
     (a.out / "heldout.json").write_text(json.dumps({"seeds": [seeds.start, seeds.stop - 1], "densities": densities,

@@ -142,6 +142,29 @@ def test_the_leader_of_a_follow_scene_drives_at_the_agents_leader_speed():
     assert v[0] == pytest.approx(5 / 7) and v[1] == pytest.approx(5 / 9 * (9.5 - 9.0) / 1.5)
 
 
+def test_a_robot_that_stopped_holds_the_leader_no_longer_and_a_held_leader_is_not_stalled():
+    """The fleet's hold gives up on a robot that does not come; a training scene whose robot collided or stalled must
+    not leave its leader waiting for ever (nor end the leader's episode as standing still while the hold stops it)."""
+    from stack.policies.drl.observation import ACTIONS
+
+    pool = CourseScenes(6, first_seed=40, follow=True)
+    w = _follow_world(pool, n=2, stall_steps=5)
+    for n in range(2):
+        w.x[n, 1], w.y[n, 1] = w.x[n, 0] - 9.6, w.y[n, 0]  # beyond the hold's stop (9.5 m): the leader stands
+    w.active[1, 1] = False  # in scene 1 that robot has stopped (collided)
+    v = w._leader_speed(np.array([1.0, 1.0]))
+    assert v[0] == 0.0 and w.held[0]  # held for the robot that still drives
+    assert v[1] > 0.0  # the stopped one holds no one
+    w.active[1, 2:] = False  # scene 1: only the leader left; scene 0: everyone stands but the held leader
+    a = np.full((2, 8), 2)
+    a[:, 0] = 12
+    for _ in range(8):
+        w.x[0, 1] = w.x[0, 0] - 9.6  # the far robot stays far: the leader stays held
+        w.step(a, ACTIONS)
+        assert not w.stalled[:, 0].any()
+    assert w.x[1, 0] > w.x[1, 1] + 9.6 + 0.5  # scene 1's leader drove on
+
+
 def test_a_robot_waiting_on_its_target_is_not_stalled():
     from stack.policies.drl.observation import ACTIONS
 

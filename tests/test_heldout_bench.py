@@ -62,6 +62,21 @@ def test_a_later_table_takes_the_seeds_after_the_spent_ones(tmp_path, capsys):
         assert msg in err, err
 
 
+def test_tuning_courses_come_from_the_tuning_seeds_and_never_from_the_held_out_ones(tmp_path, capsys):
+    from stack.fleet.courses import TUNE_SEEDS
+
+    tasks = heldout.plan(2, ["low"], ["pid"], tmp_path, skip=600, seeds=TUNE_SEEDS)
+    assert [t["seed"] for t in tasks] == [600, 601]
+    for flags, msg in ((["--first-seed", str(HELDOUT_START)], f"--first-seed {HELDOUT_START}: expected a tuning seed, 0..999"),
+                       (["--arrival", "3"], "arrival-time tasks come from held-out seeds only")):
+        with pytest.raises(SystemExit) as e:
+            heldout.main(["--tuning", *flags, "--out", str(tmp_path / "x")])
+        assert e.value.code == 2
+        err = capsys.readouterr().err
+        assert msg in err, err
+    assert "Tuning seeds 600..601" in heldout.markdown([], range(600, 602), "c", "Tuning")
+
+
 def test_drl_weights_go_to_both_drl_kinds_and_nothing_else(tmp_path, capsys):
     w = ROOT / "stack" / "policies" / "drl" / "weights" / "drl.pt"
     tasks = heldout.plan(1, ["medium"], ["drl", "drl-alone", "aina"], tmp_path, drl_weights=w)
