@@ -90,20 +90,21 @@ def run_all(tasks: list[dict], eng, resume: bool, lockstep_timeout: float = LOCK
     return rows + [row(t, *report_of(r)) for t, r in zip(todo, run_jobs(jobs, eng, desc="held-out"))]
 
 
-def _variant(c, policy: str, weights: Path | None) -> dict | None:
+def _variant(c, policy: str, weights: Path | None, drl_set: dict | None = None) -> dict | None:
     """The course's ``robot`` block for ``policy`` where it differs from the course's own: ``drl-alone``'s safety
-    layers off, ``--drl-weights`` for both drl kinds; None where it does not."""
+    layers off, ``--drl-weights`` and ``--drl-set`` for both drl kinds; None where it does not."""
     drl = policy.removesuffix("-alone") == "drl"
-    if not policy.endswith("-alone") and not (drl and weights):
+    extra = {**(drl_set or {}), **({"weights": str(weights)} if weights else {})} if drl else {}
+    if not policy.endswith("-alone") and not extra:
         return None
     robot = {**c.scenario["robot"], **(ALONE if policy.endswith("-alone") else {})}
-    if drl and weights:
-        robot["drl"] = {**robot.get("drl", {}), "weights": str(weights)}
+    if extra:
+        robot["drl"] = {**robot.get("drl", {}), **extra}
     return robot
 
 
 def plan(courses: int, densities: list[str], policies: list[str], out: Path, skip: int = 0,
-         drl_weights: Path | None = None, seeds: range = HELDOUT_SEEDS) -> list[dict]:
+         drl_weights: Path | None = None, seeds: range = HELDOUT_SEEDS, drl_set: dict | None = None) -> list[dict]:
     """Write the courses (seeds ``skip`` on into ``seeds``: the held-out range, or TUNE_SEEDS for ``--tuning``) under
     OUT/courses/<density>/ and list the runs."""
     tasks = []
@@ -115,7 +116,7 @@ def plan(courses: int, densities: list[str], policies: list[str], out: Path, ski
             for p in policies:
                 if p.removesuffix("-alone") not in c.scenario["bench"]["policies"]:
                     continue
-                file, robot = path, _variant(c, p, drl_weights)
+                file, robot = path, _variant(c, p, drl_weights, drl_set)
                 if robot is not None:  # the same course, the safety layers off or other weights
                     tag = "alone" if p.endswith("-alone") else "weights"
                     file = write_course(replace(c, scenario={**c.scenario, "robot": robot}),
@@ -218,6 +219,34 @@ def _list(options):
     return parse
 
 
+def _settings(ap, pairs: list[str]) -> dict:
+    """``--drl-set KEY=VALUE`` pairs -> {key: value}, each checked against ``DrlConfig`` (one line on an error)."""
+    import dataclasses
+
+    import yaml
+
+    from stack.policies.drl.config import DrlConfig
+
+    out = {}
+    for p in pairs:
+        key, eq, value = p.partition("=")
+        if not eq or not key:
+            ap.error(f"--drl-set {p!r}: expected KEY=VALUE")
+        try:
+            out[key] = yaml.safe_load(value)
+        except yaml.YAMLError as e:
+            ap.error(f"--drl-set {p!r}: the value is not YAML ({str(e).splitlines()[0]})")
+    known = [f.name for f in dataclasses.fields(DrlConfig)]
+    for key in out:
+        if key not in known:
+            ap.error(f"--drl-set {key}: not a robot.drl setting (known: {', '.join(known)})")
+    try:
+        DrlConfig(**out)
+    except (TypeError, ValueError) as e:
+        ap.error(f"--drl-set: {e}")
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--courses", type=int, default=34, help="held-out courses per density (default 34: 102 in all)")
@@ -239,6 +268,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--drl-weights", type=Path, metavar="FILE",
                     help="drl and drl-alone run these weights (robot.drl.weights: a stack-train drl drl.pt or its .npz "
                          "export; default: the shipped ones)")
+    ap.add_argument("--drl-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a robot.drl setting for drl and drl-alone (repeatable; the value is YAML), e.g. "
+                         "centre_heading=false")
     ap.add_argument("--lockstep-timeout", type=float, default=LOCKSTEP_TIMEOUT_S, metavar="S",
                     help=f"how long (wall) each run's world waits for an agent's command before it goes on without it "
                          f"(default {LOCKSTEP_TIMEOUT_S:g} s; the table counts runs with such late steps)")
@@ -263,9 +295,10 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--drl-weights {a.drl_weights}: no such file")
     if not 0 <= a.courses <= left or not 0 <= a.arrival <= left or not a.courses + a.arrival:
         ap.error(f"--courses {a.courses}, --arrival {a.arrival}: expected 0..{left} each from seed {a.first_seed}, not both 0")
+    drl_set = _settings(ap, a.drl_set)
     try:
         tasks = plan(a.courses, a.densities, a.policies, a.out.resolve(), skip,
-                     a.drl_weights.resolve() if a.drl_weights else None, pool)
+                     a.drl_weights.resolve() if a.drl_weights else None, pool, drl_set)
         tasks += plan_arrival(a.arrival, a.arrival_policies, a.out.resolve(), skip)
         tasks.sort(key=lambda t: t["seed"])  # seed-major: a run cut short leaves whole seeds; --resume goes on
     except CourseError as e:

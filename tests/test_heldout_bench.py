@@ -91,6 +91,20 @@ def test_drl_weights_go_to_both_drl_kinds_and_nothing_else(tmp_path, capsys):
     assert e.value.code == 2 and "--drl-weights" in capsys.readouterr().err
 
 
+def test_drl_set_reaches_both_drl_kinds_and_a_bad_setting_is_one_line(tmp_path, capsys):
+    tasks = heldout.plan(1, ["low"], ["drl", "drl-alone", "pid"], tmp_path, drl_set={"centre_heading": False})
+    by = {t["policy"]: load_scenario(t["file"]) for t in tasks}
+    assert all(not r.settings["drl"].centre_heading for p in ("drl", "drl-alone") for r in by[p].robots)
+    assert all(r.settings["drl"].shield for r in by["drl"].robots)
+    assert not next(t for t in tasks if t["policy"] == "pid")["file"].endswith("-weights.yaml")
+    for flag, msg in (("bogus=1", "--drl-set bogus: not a robot.drl setting"), ("shield", "expected KEY=VALUE"),
+                      ("shield_margin=-1", "shield_margin: must be >= 0")):
+        with pytest.raises(SystemExit) as e:
+            heldout.main(["--tuning", "--drl-set", flag, "--out", str(tmp_path / "x")])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and msg in err and "Traceback" not in err, err
+
+
 def test_each_run_waits_for_a_slow_agent_and_the_table_counts_the_runs_that_still_went_on(tmp_path, monkeypatch, capsys):
     """A loaded machine makes an agent late, not a policy fail: every run gets --lockstep-timeout (20 s by default,
     not stack-fleet's 2 s), and runs whose world still went on without an agent are counted per row."""

@@ -216,3 +216,14 @@ def test_stacked_scans_are_one_control_period_apart_at_any_lidar_rate():
         pipe.step(StepInputs(step=k, t=0.1 * k, t_run=0.1 * k, now=0.1 * k, scan=scans[-1], scan_t=0.1 * k,
                              odometry=(OdomSample(0.0, 0.0, 0.1 * k),)))
     assert [s[0] for s in pipe.scans] == newest[-3:]
+
+
+@pytest.mark.parametrize("centre", [True, False])
+def test_robot_drl_centre_heading_reaches_the_followers_decision_layer(centre):
+    """``robot.drl.centre_heading`` (default true, Bai's eq. 21-22) decides where a drl follower in situation 3
+    aims; pid never aims at the centre."""
+    d = scenario_dict()
+    d["robot"]["drl"] = {"centre_heading": centre}
+    sc = parse_scenario(d)
+    assert StepPipeline(sc, 1, policy="drl").decision.centre_heading is centre
+    assert StepPipeline(sc, 1, policy="pid").decision.centre_heading is False

@@ -157,7 +157,7 @@ class StepPipeline:
         self.pid = make_policy("pid", replace(robot, role=self.role))  # situation 1 of the hybrid strategy
         self.decision = DecisionLayer(robot_id, self.role, scenario.formation, goal=robot.goal, radius=robot.radius,
                                       comm_range=robot.comm_range, scan_range=robot.lidar.range, dt=scenario.dt,
-                                      centre_heading=self.policy.hybrid and self.policy_name != "pid", fov=robot.lidar.fov,
+                                      centre_heading=self.policy.hybrid and self.policy.centre_heading and self.policy_name != "pid", fov=robot.lidar.fov,
                                       stuck=robot.stuck)
         self.decision.static_hold = self.policy.hybrid  # eq. (20)'s hold slows only the hybrid strategy's leader
         self.neighbours: dict[int, Neighbour] = {}

@@ -55,6 +55,9 @@ class Policy(ABC):
     hybrid = True
     """True: the policy is the "network" of Bai's hybrid strategy (PID drives in situation 1);
     False: the policy drives in every situation (its paper has its own avoidance)."""
+    centre_heading = True
+    """Hybrid followers in situation 3 (an obstacle within d_safe) aim at the centre of the robots ahead (Bai's
+    eq. 21-22) instead of their slot; False: at the slot, as in the other situations."""
     needs_lidar = True
     """False: the policy drives without the lidar (``pid``: go-to-goal only), so a stale scan does not stop it."""
     leader_hold: tuple[float, float] | None = None

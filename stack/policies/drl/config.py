@@ -30,6 +30,9 @@ class DrlConfig:
     """[s] how far ahead each action's arc (v, w held) is checked."""
     shield_margin: float = 0.1
     """[m] clearance kept beyond the robot's radius."""
+    centre_heading: bool = True
+    """Follower situation 3 (an obstacle within d_safe): the network's alpha_g aims at the centre of the robots
+    ahead (eq. 21-22, the paper); False: at the robot's slot, the bearing it had in every training scene."""
     leader_hold: tuple[float, float] | None = field(default=(0.8, 0.95), metadata={"expect": _HOLD})
     """(start, stop), fractions of d_com: as a leader's farthest robot goes from start d_com to stop d_com,
     its speed after eq. (20) falls linearly to zero, so a follower held up at an obstacle stays in range

@@ -130,6 +130,7 @@ class DrlPolicy(Policy):
                        if cfg.shield else None)
         self.masked = 0  # steps at which the shield overruled the network's greedy action
         self.leader_hold = cfg.leader_hold
+        self.centre_heading = cfg.centre_heading
 
     def q_values(self, obs: Observation) -> np.ndarray:
         if not self.torch:
