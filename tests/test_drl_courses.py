@@ -180,3 +180,20 @@ def test_follow_is_a_stage_3_flag():
     r = subprocess.run([sys.executable, "-m", "stack.train", "drl", "--stage", "2", "--follow"], capture_output=True,
                        text=True, cwd=ROOT, timeout=60)
     assert r.returncode == 2 and "--follow" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_a_run_cut_by_time_still_goes_through_the_whole_schedule():
+    """--max-minutes: epsilon and the curriculum follow the time where it runs ahead of the episodes."""
+    import time
+
+    from stack.train.drl import DrlJob, _Training
+
+    job = DrlJob(stage=3, episodes=8000, eps_start=0.2, eps_end=0.02, eps_fraction=0.5, max_minutes=10.0)
+    t = _Training.__new__(_Training)
+    t.job, t.episode, t.t0 = job, 400, time.monotonic() - 7 * 60.0  # 5 % of the episodes, 70 % of the time
+    assert t.done() == pytest.approx(0.7, abs=0.01)
+    assert job.epsilon(400, t.done()) == pytest.approx(0.02)  # past eps_fraction of the time: at the floor
+    assert job.epsilon(400) == pytest.approx(0.2 - 0.18 * 0.1)  # by episodes alone: 10 % of the way
+    assert level(t.done()) == level(0.9)  # the last third of the curriculum: every density
+    t.job = DrlJob(stage=3, episodes=8000)  # no time limit: the episodes alone
+    assert t.done() == pytest.approx(0.05)

@@ -115,7 +115,8 @@ class DrlJob:
     seed: int = 0
     """seed of the worlds, the exploration and torch"""
     max_minutes: float | None = None
-    """stop (and save, and evaluate) after this wall time"""
+    """stop (and save, and evaluate) after this wall time [min]; the epsilon schedule and stage 3's curriculum
+    then follow whichever of the episodes and the time is further along"""
     stop_after: int | None = flag(None, type=positive_int, metavar="EPISODES")
     """stop after this many episodes (the epsilon schedule still spans --episodes): replays a run cut by
     --max-minutes"""
@@ -138,10 +139,12 @@ class DrlJob:
         if self.episodes is None:
             self.episodes = 5000 if self.stage == 1 else 10000
 
-    def epsilon(self, episode: int) -> float:
+    def epsilon(self, episode: int, done: float | None = None) -> float:
+        """Epsilon after ``episode`` episodes, or at the fraction ``done`` of the training (``Trainer.done``)."""
         e0 = self.eps_start if self.eps_start is not None else (1.0 if self.stage == 1 else 0.5)
         frac = self.eps_fraction if self.eps_fraction is not None else (0.6 if self.stage == 1 else 0.7)
-        k = min(1.0, episode / max(1.0, frac * self.episodes))
+        done = episode / self.episodes if done is None else done
+        k = min(1.0, done / max(1.0 / self.episodes, frac))
         return e0 + (self.eps_end - e0) * k
 
 
@@ -417,7 +420,7 @@ class _Training:
         if done.any():
             self.ep_return[done] = 0.0
             if self.scenes is not None:  # stage 3's curriculum: the new scenes at the training's progress
-                self.scenes.progress = self.episode / self.job.episodes
+                self.scenes.progress = self.done()
             w.reset(done)
             obs2 = w.observe()
         return obs2, done
@@ -453,6 +456,14 @@ class _Training:
             _write_json(self.job, self.curve, self.losses, self.steps, time.monotonic() - self.t0, None)
             self.last_ckpt = time.monotonic()
 
+    def done(self) -> float:
+        """How far the training is, 0..1: of its episodes, or of ``max_minutes`` where that comes first (the
+        epsilon schedule and stage 3's curriculum follow it, so a run cut by time still reaches every level)."""
+        f = self.episode / self.job.episodes
+        if self.job.max_minutes:
+            f = max(f, (time.monotonic() - self.t0) / (60 * self.job.max_minutes))
+        return min(1.0, f)
+
     def stop(self) -> bool:
         job = self.job
         if job.max_minutes and time.monotonic() - self.t0 > 60 * job.max_minutes:
@@ -463,7 +474,7 @@ class _Training:
     def run(self) -> dict:
         obs = self.world.observe()
         while self.episode < self.job.episodes and not self.stop():
-            eps = self.job.epsilon(self.episode)
+            eps = self.job.epsilon(self.episode, self.done())
             obs, done = self.step(obs, eps)
             self.learn()
             if self.curve and done.any():
