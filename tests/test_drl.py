@@ -297,3 +297,12 @@ def test_robot_drl_settings_reach_the_policy(tmp_path):
         d["robot"]["drl"] = {"leader_hold": bad}
         with pytest.raises(ScenarioError, match=r"robot\.drl.*leader_hold: expected \[start, stop\]"):
             parse_scenario(d, "s.yaml")
+
+
+def test_the_collision_penalty_replaces_eq_16s_minus_one_and_nothing_else():
+    args = ([2.0, 2.0], [1.9, 1.9], [0.8, 5.0], [5.0, 5.0], np.zeros((2, 2)), np.zeros((2, 2)))
+    r1, _, c1 = reward(*args)
+    r5, _, c5 = reward(*args, collision_penalty=5.0)
+    assert c1.tolist() == c5.tolist() == [True, False]
+    assert r1[0] == pytest.approx(0.05 - 1.0) and r5[0] == pytest.approx(0.05 - 5.0)  # eq. (15) progress + r_c
+    assert r1[1] == r5[1] == pytest.approx(0.05)

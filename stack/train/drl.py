@@ -96,6 +96,8 @@ class DrlJob:
     """max-step per episode (Table I)"""
     time_penalty: float = flag(0.0, type=nonnegative_float)
     """ours: subtract this from every step's reward until arrival (0: eq. 14-17 as printed)"""
+    collision_penalty: float = flag(1.0, type=nonnegative_float)
+    """ours: a collision's reward is minus this (1: eq. 16 as printed)"""
     stall_steps: int = flag(0, type=nonnegative_int)
     """ours: end an episode with -1 when the robot has moved < 0.1 m in this many steps (0: off)"""
     robots: int = flag(4, choices=range(2, 9), metavar="N")
@@ -364,7 +366,7 @@ class _Training:
         size = COURSE_WORLD if job.stage == 3 else {"robots": job.robots}
         self.world = DrlWorld(job.envs, job.stage, seed=job.seed, scenes=self.scenes, cfg=WorldConfig(
             max_steps=job.max_steps, time_penalty=job.time_penalty, stall_steps=job.stall_steps,
-            max_walls=job.max_walls, follow=job.follow, **size))
+            collision_penalty=job.collision_penalty, max_walls=job.max_walls, follow=job.follow, **size))
         self.N, self.R = self.world.N, self.world.R
         self.D = Replay(job.memory, self.world.cfg.beams, self.R - 1, self.rng)
         self.nstep = NStep(self.D, job.n_step, job.gamma, self.N)

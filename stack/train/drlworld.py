@@ -62,6 +62,7 @@ class WorldConfig:
     stall_steps: int = 0  # training only: a robot that has moved less than stall_move in this many steps ends its
     stall_move: float = 0.1  # episode with -stall_penalty, like a collision (0: off, the paper's episodes)
     stall_penalty: float = 1.0
+    collision_penalty: float = 1.0  # eq. (16)'s -1 for a collision, as a positive penalty (stack.policies.drl.reward)
     follow: bool = False  # robot 0 leads, the others' targets are their slots round it (module docstring)
     leader_hold: tuple[float, float] | None = (0.8, 0.95)  # follow: DrlConfig.leader_hold's default
 
@@ -365,7 +366,7 @@ class DrlWorld:
         d_rob = self._robot_distances().min(axis=2) if self.R > 1 else np.full((self.N, 1), np.inf)
         d_obs = obstacle_distance(self.x, self.y, self.circles[:, None], self.boxes[:, None])
         r, arrived, collided = reward(self.d_prev, d_now, d_rob, d_obs, self.a_prev, a, c.radius, c.time_penalty,
-                                      can_arrive)
+                                      can_arrive, c.collision_penalty)
         r = np.where(self.active, r, 0.0)
         arrived &= self.active
         collided &= self.active & ~arrived

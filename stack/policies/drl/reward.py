@@ -8,6 +8,8 @@
   eq. (17) r_a = -0.05 (|v_t - v_{t-1}| + |w_t - w_{t-1}|)   (commanded actions)
   ours     a robot arrives only where ``can_arrive`` (a follower whose slot still moves with its leader
            earns eq. (15)'s progress term, not its arrival: stage 3's ``follow`` scenes)
+  ours     r_c's collision value is -collision_penalty (default 1.0, eq. 16's; ``stack-train drl
+           --collision-penalty``: a follower whose slot moves on has little future reward to lose by colliding)
   ours     r_t -= time_penalty on every step that does not arrive (default 0: the paper's reward;
            ``stack-train drl --time-penalty`` sets it, see the README: without it, standing still
            is worth 0 and the greedy policy learnt to stand still in 18 % of held-out scenes)
@@ -30,7 +32,7 @@ K_ACTION = 0.05
 
 
 def reward(d_prev, d_now, d_robot, d_obstacle, a_prev, a_now, radius: float = R_D, time_penalty: float = 0.0,
-           can_arrive=True):
+           can_arrive=True, collision_penalty: float = -R_COLLIDE):
     """Returns (r, arrived, collided), arrays of the broadcast shape of the inputs.
 
     d_prev, d_now: distance to the target before and after the step; d_robot: centre distance to
@@ -43,7 +45,7 @@ def reward(d_prev, d_now, d_robot, d_obstacle, a_prev, a_now, radius: float = R_
     r_g = np.where(arrived, R_GOAL, K_PROGRESS * (d_prev - d_now))  # eq. (15)
     collided = (d_robot < 2 * radius) | (d_obstacle < radius)
     near = (d_robot < 3 * radius) | (d_obstacle < 2 * radius)
-    r_c = np.where(collided, R_COLLIDE, np.where(near, R_NEAR, 0.0))  # eq. (16)
+    r_c = np.where(collided, -collision_penalty, np.where(near, R_NEAR, 0.0))  # eq. (16)
     da = np.abs(np.asarray(a_now, float) - np.asarray(a_prev, float))
     r_a = -K_ACTION * (da[..., 0] + da[..., 1])  # eq. (17)
     r_t = np.where(arrived, 0.0, -time_penalty)  # ours (0: eq. 14 exactly)
