@@ -35,9 +35,11 @@ from stack.fleet.jobs import Job, add_engine_args, cli_task, run_jobs  # noqa: E
 
 POLICIES = ("drl", "aina", "qlearn", "pid", "drl-alone")
 DEFAULT_POLICIES = ("drl", "aina", "qlearn", "pid")
-ALONE = {"drl": {"shield": False}, "guard": {"enabled": False}}
+ALONE = {"drl": {"shield": False}, "guard": {"enabled": False}, "stuck": {"detour": {"tracker": "policy"}}}
 """``drl-alone``: Bai's network without the safety layers under it (its action shield, the step's collision
-guard), the hybrid strategy and the stuck detector as they are: the course's own file with these settings."""
+guard) and driving a stuck robot's planned detour itself (not the PID path tracker, which does not see the other
+robots); the hybrid strategy (PID in situation 1, nothing within d_safe) and the stuck detector as they are: the
+course's own file with these settings."""
 LOCKSTEP_TIMEOUT_S = 20.0
 """How long (wall) each run's world waits for an agent's command (``stack-fleet run --lockstep-timeout``; its
 default is 2 s). A lock-step world runs about ten times faster than real time, so an agent that computes for 5 s

@@ -177,6 +177,15 @@ def test_time_penalty_and_stall_end_a_standing_robots_episode():
     assert not w.stalled[1, 0] and w.active[1, 0] and not col.any()
 
 
+def test_the_stall_penalty_flag_reaches_the_training_world(tmp_path):
+    """``stack-train drl --stall-penalty P`` (ours): a stall that ends an episode costs P, in the world trained in."""
+    from stack.train.drl import DrlJob, _Training
+
+    job = DrlJob(stage=1, out=tmp_path, envs=2, stall_steps=30, stall_penalty=5.0, collision_penalty=10.0)
+    cfg = _Training(job, log=lambda *_: None).world.cfg
+    assert (cfg.stall_steps, cfg.stall_penalty, cfg.collision_penalty) == (30, 5.0, 10.0)
+
+
 # --- training -------------------------------------------------------------------------------------
 def test_td_loss_decreases_and_a_short_run_writes_its_outputs(tmp_path):
     from stack.train.drl import DrlJob, Learner, Replay, pick, train

@@ -227,3 +227,26 @@ def test_robot_drl_centre_heading_reaches_the_followers_decision_layer(centre):
     sc = parse_scenario(d)
     assert StepPipeline(sc, 1, policy="drl").decision.centre_heading is centre
     assert StepPipeline(sc, 1, policy="pid").decision.centre_heading is False
+
+
+@pytest.mark.parametrize("tracker", ["pid", "policy"])
+def test_robot_stuck_detour_tracker_says_what_drives_a_planned_detour(tracker):
+    """``robot.stuck.detour.tracker``: a stuck robot's planned detour is driven by the PID path tracker (``pid``, the
+    default) or by the robot's own policy (``policy``: bench/heldout.py's drl-alone, the network that sees the other
+    robots); a blind escape is always the policy's."""
+    from stack.agents.decision import Decision
+    from stack.policies.base import Observation
+
+    d = scenario_dict()
+    d["robot"]["stuck"] = {"detour": {"tracker": tracker}}
+    pipe = StepPipeline(parse_scenario(d), 1, policy="drl")
+    assert pipe.role == "follower"
+    calls = []
+    pipe.pid = type("Pid", (), {"act": lambda self, obs: calls.append("pid") or (0.3, 0.0)})()
+    pipe.policy.act = lambda obs: calls.append("policy") or (0.5, 0.0)
+    stuck = pipe.decision.stuck
+    obs = Observation(d_g=2.0, alpha_g=0.0, v=0.0, w=0.0)
+    for kind in ("plan", "escape"):
+        stuck.waypoint, stuck.open = (3.0, 1.0), {"kind": kind}
+        pipe._act(Decision("escape", True, obs, (3.0, 1.0), 1.0, 4.0, 1.0), 0.0)
+    assert calls == [tracker, "policy"]

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
@@ -60,6 +61,10 @@ class DetourConfig:
     """[s] the longest a plan down a straight way that is open (a stuck robot whose policy refuses it) drives."""
     max_cells: int = field(default=200_000, metadata=rule("> 0"))
     """the most cells the memory keeps (the oldest are forgotten first)."""
+    tracker: Literal["pid", "policy"] = "pid"
+    """What drives the robot to the path's waypoints: ``pid`` (the path tracker, blind to the other robots; the
+    policy's own steering is what left it stuck) or ``policy`` (the robot's own policy, which sees them:
+    ``bench/heldout.py``'s ``drl-alone``, so that every command outside Bai's situation 1 is the network's)."""
 
     def __post_init__(self):
         check(self)

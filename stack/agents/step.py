@@ -291,8 +291,13 @@ class StepPipeline:
             self._take_role(self.decision.role, inp.t_run)
         return dec
 
+    def _tracks_plan(self, dec) -> bool:
+        """Whether the PID tracker drives this step's planned detour (``robot.stuck.detour.tracker``)."""
+        stuck = self.decision.stuck
+        return dec.situation == "escape" and stuck.planned and stuck.cfg.detour.tracker == "pid"
+
     def _act(self, dec, t_run: float) -> tuple[float, float]:
-        tracker = (not dec.use_network and self.policy.hybrid) or (dec.situation == "escape" and self.decision.stuck.planned)
+        tracker = (not dec.use_network and self.policy.hybrid) or self._tracks_plan(dec)
         v, w = (self.pid if tracker else self.policy).act(dec.obs)  # a planned detour: the PID tracks its waypoints
         if self.role == "leader" and self.policy.hybrid:  # eq. (20), and a connectivity hold that gives up in time
             v = self.decision.hold_speed(v, dec.d_rmax, t_run, self.sc.formation.d_leader_slow,

@@ -99,7 +99,9 @@ class DrlJob:
     collision_penalty: float = flag(1.0, type=nonnegative_float)
     """ours: a collision's reward is minus this (1: eq. 16 as printed)"""
     stall_steps: int = flag(0, type=nonnegative_int)
-    """ours: end an episode with -1 when the robot has moved < 0.1 m in this many steps (0: off)"""
+    """ours: end an episode with -(stall penalty) when the robot has moved < 0.1 m in this many steps (0: off)"""
+    stall_penalty: float = flag(1.0, type=nonnegative_float)
+    """ours: the reward of a stall that ends an episode is minus this (--stall-steps)"""
     robots: int = flag(4, choices=range(2, 9), metavar="N")
     """stage 2: robots per scene, 2..8 (the paper: four)"""
     courses: int = flag(240, type=positive_int)
@@ -366,7 +368,7 @@ class _Training:
         size = COURSE_WORLD if job.stage == 3 else {"robots": job.robots}
         self.world = DrlWorld(job.envs, job.stage, seed=job.seed, scenes=self.scenes, cfg=WorldConfig(
             max_steps=job.max_steps, time_penalty=job.time_penalty, stall_steps=job.stall_steps,
-            collision_penalty=job.collision_penalty, max_walls=job.max_walls, follow=job.follow, **size))
+            stall_penalty=job.stall_penalty, collision_penalty=job.collision_penalty, max_walls=job.max_walls, follow=job.follow, **size))
         self.N, self.R = self.world.N, self.world.R
         self.D = Replay(job.memory, self.world.cfg.beams, self.R - 1, self.rng)
         self.nstep = NStep(self.D, job.n_step, job.gamma, self.N)
