@@ -189,6 +189,8 @@ def plot(table: list[dict], policies: list[str], densities: list[str], path: Pat
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    policies = [p for p in policies if any(r["policy"] == p for r in table)]  # only what ran (--arrival 0: no fuzzy)
+    densities = [d for d in densities if any(r["density"] == d for r in table)]
     fig, ax = plt.subplots(figsize=(6.5, 4))
     width = 0.8 / max(1, len(policies))
     for k, p in enumerate(policies):
