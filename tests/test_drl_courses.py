@@ -197,3 +197,24 @@ def test_a_run_cut_by_time_still_goes_through_the_whole_schedule():
     assert level(t.done()) == level(0.9)  # the last third of the curriculum: every density
     t.job = DrlJob(stage=3, episodes=8000)  # no time limit: the episodes alone
     assert t.done() == pytest.approx(0.05)
+
+
+def test_the_cached_reachability_agrees_with_the_windowed_flood_fill(pool):
+    """A scene's reachability check uses the course's free cells computed once; it answers as the flood fill
+    over its own window does, but for cells cut differently at an obstacle's edge (the grids' origins differ)."""
+    from stack.train.course_scenes import REACH_CELL
+    from stack.train.drlworld import reachable
+
+    rng = np.random.default_rng(4)
+    agree = total = blocked = 0
+    for c in pool.pool[:12]:
+        for _ in range(6):
+            starts = c.offsets + [float(rng.uniform(0.0, max(c.length - pool.shift[1], 0.0))), 0.0]
+            goals = starts + [float(rng.uniform(*pool.shift)), 0.0]
+            for s, g in zip(starts, goals):
+                want = reachable(s, g, c.circles, c.boxes, c.radius, cell=REACH_CELL)
+                agree += pool._reach(c, s, g) == want
+                blocked += not want
+                total += 1
+    assert c.free is not None and total >= 200
+    assert blocked > 0 and agree >= 0.97 * total, (agree, total, blocked)

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from stack.fleet.courses import DENSITIES, HELDOUT_SEEDS, generate_course
+from stack.policies.qlearn import reachable as flood_fill
 from stack.scenario import parse_scenario
 
 from .drlworld import FAR, obstacle_distance, reachable, scene_arrays
@@ -33,6 +34,8 @@ LEVELS = ((("low",), 4), (("low", "medium"), 6), (tuple(DENSITIES), MAX_ROBOTS))
 """The curriculum's thirds: (densities, most robots)."""
 REACH_CELL = 0.2
 """[m] the reachability flood fill's cell (coarse: a scene is drawn at every episode's start)."""
+REACH_MARGIN = 0.05
+"""[m] clearance beyond the robot's radius that a free cell needs (:func:`.drlworld.reachable`'s default)."""
 SHIFT = (5.0, 14.0)
 """[m] how far down the corridor the targets lie from the starts (stage 2's common shift)."""
 SHIFT_FOLLOW = (10.0, 25.0)
@@ -64,6 +67,7 @@ class PoolCourse:
     circles: np.ndarray
     boxes: np.ndarray
     radius: float
+    free: tuple | None = None  # (origin (2,), grid): the reachability fill's free cells, made once (CourseScenes._reach)
 
 
 class CourseScenes:
@@ -119,7 +123,24 @@ class CourseScenes:
             return False
         if obstacle_distance(pts[:, 0], pts[:, 1], c.circles, c.boxes).min() < c.radius + self.clear:
             return False
-        return all(reachable(s, g, c.circles, c.boxes, c.radius, cell=REACH_CELL) for s, g in zip(starts, goals))
+        return all(self._reach(c, s, g) for s, g in zip(starts, goals))
+
+    def _reach(self, c: PoolCourse, start: np.ndarray, goal: np.ndarray) -> bool:
+        """:func:`.drlworld.reachable` on the course's free cells, computed once for the whole corridor (a scene is
+        drawn at every episode's start); the fill keeps to 5 m round ``start`` and ``goal`` as there."""
+        if c.free is None:
+            lo = np.array([c.offsets[:, 0].min() - 10.0, -c.half_width - 5.0])
+            X, Y = np.meshgrid(np.arange(lo[0], c.length + self.shift[1] + 10.0, REACH_CELL),
+                               np.arange(lo[1], c.half_width + 5.0, REACH_CELL), indexing="ij")
+            c.free = (lo, obstacle_distance(X, Y, c.circles, c.boxes) > c.radius + REACH_MARGIN)
+        lo, free = c.free
+        i0 = np.floor((np.minimum(start, goal) - 5.0 - lo) / REACH_CELL).astype(int)
+        i1 = np.ceil((np.maximum(start, goal) + 5.0 - lo) / REACH_CELL).astype(int)
+        if (i0 < 0).any() or (i1 > free.shape).any():  # beyond the cached cells: the window's own grid
+            return reachable(start, goal, c.circles, c.boxes, c.radius, cell=REACH_CELL, margin=REACH_MARGIN)
+        window = free[i0[0]:i1[0], i0[1]:i1[1]]
+        cell = lambda p: tuple(int(k) for k in np.floor((p - lo) / REACH_CELL).astype(int) - i0)  # noqa: E731
+        return flood_fill(~window, cell(start), cell(goal))
 
 
 def parked(starts: np.ndarray) -> np.ndarray:

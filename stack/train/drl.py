@@ -132,6 +132,10 @@ class DrlJob:
     """the held-out scenes' seed (another one: a fresh set nobody chose weights on)"""
     threads: int = flag(1, type=positive_int)
     """torch threads"""
+    overlap: bool = True
+    """learn on a second thread while the world steps (two cores): gradient step k samples the replay memory as it
+    was before parallel step k's transitions went in, and the robots act on theta after step k-1 as before; the run
+    stays deterministic per seed. --no-overlap: one thread, step then learn"""
     progress: bool = True
     """a live progress bar"""
     plots: bool = True
@@ -362,6 +366,8 @@ class _Training:
         if job.init:
             net.load_state_dict(torch.load(job.init, map_location="cpu", weights_only=True))
         self.L = Learner(job, net)
+        self.actor = DuelingQNet()  # theta as the trained robots act on it (a copy: the learner's thread changes theta)
+        self.actor.load_state_dict(net.state_dict())
         self.frozen = DuelingQNet()  # theta~ of the other robots (stage 2)
         self.frozen.load_state_dict(net.state_dict())
         self.scenes = course_pool(job.courses, job.course_seed, log, job.follow) if job.stage == 3 else None
@@ -392,7 +398,7 @@ class _Training:
         the trained robot of each environment, greedy on theta~ for the others."""
         N, R, rows, tr = self.N, self.R, self.rows, self.world.trained
         o = pick(obs, rows, tr)
-        a_tr = greedy(self.L.q, o, self.torch)
+        a_tr = greedy(self.actor, o, self.torch)
         explore = self.rng.random(N) < eps
         a_tr[explore] = self.rng.integers(0, len(self.actions), explore.sum())
         actions = np.zeros((N, R), np.int64)
@@ -429,13 +435,22 @@ class _Training:
             obs2 = w.observe()
         return obs2, done
 
-    def learn(self) -> None:
-        """Gradient steps once the memory holds enough; theta~ = theta every N transitions (stage 2)."""
+    def batches(self) -> list:
+        """The minibatches of this parallel step's gradient steps (none until the memory holds enough)."""
         job = self.job
-        if self.D.n >= max(job.learn_start, job.batch):
-            for _ in range(job.updates_per_step):
-                self.losses.append(self.L.update(self.D.sample(job.batch)))
-        if self.R > 1 and self.since_copy >= job.copy_every:
+        if self.D.n < max(job.learn_start, job.batch):
+            return []
+        return [self.D.sample(job.batch) for _ in range(job.updates_per_step)]
+
+    def update(self, batches: list) -> None:
+        """The gradient steps (on the learner's thread with ``overlap``: touches theta, theta^- and the losses only)."""
+        for b in batches:
+            self.losses.append(self.L.update(b))
+
+    def synced(self) -> None:
+        """After the gradient steps: the acting copy of theta; theta~ = theta every N transitions (stage 2)."""
+        self.actor.load_state_dict(self.L.q.state_dict())
+        if self.R > 1 and self.since_copy >= self.job.copy_every:
             self.frozen.load_state_dict(self.L.q.state_dict())  # every N steps theta~ = theta
             self.since_copy = 0
 
@@ -476,14 +491,23 @@ class _Training:
         return bool(job.stop_after and self.episode >= job.stop_after)
 
     def run(self) -> dict:
+        from concurrent.futures import ThreadPoolExecutor
+
         obs = self.world.observe()
-        while self.episode < self.job.episodes and not self.stop():
-            eps = self.job.epsilon(self.episode, self.done())
-            obs, done = self.step(obs, eps)
-            self.learn()
-            if self.curve and done.any():
-                self.report(eps)
-            self.checkpoint()
+        with ThreadPoolExecutor(1, thread_name_prefix="learner") as learner:
+            while self.episode < self.job.episodes and not self.stop():
+                eps = self.job.epsilon(self.episode, self.done())
+                if self.job.overlap:  # the gradient steps on the learner's thread while the world steps
+                    pending = learner.submit(self.update, self.batches())
+                    obs, done = self.step(obs, eps)
+                    pending.result()
+                else:
+                    obs, done = self.step(obs, eps)
+                    self.update(self.batches())
+                self.synced()
+                if self.curve and done.any():
+                    self.report(eps)
+                self.checkpoint()
         if self.bar is not None:
             self.bar.close()
         return self.finish(time.monotonic() - self.t0)

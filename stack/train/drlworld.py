@@ -82,14 +82,18 @@ def scene_arrays(obstacles, max_circles: int | None = None, max_boxes: int | Non
     return c, b
 
 
-def ray_cast(x, y, yaw, circles, boxes, beam_angles, r0: float, scan_range: float) -> np.ndarray:
+def ray_cast(x, y, yaw, circles, boxes, beam_angles, r0: float, scan_range: float, dtype=np.float64) -> np.ndarray:
     """Ranges (..., B) of rays from (x, y) (shape (...)) at yaw + beam_angles, starting r0 from the centre.
 
     circles (..., Mc, 3) [x, y, r], boxes (..., Mb, 5) [cx, cy, hx, hy, yaw], broadcast against the
-    ray origins' leading shape. A ray that starts inside a body reads r0."""
+    ray origins' leading shape. A ray that starts inside a body reads r0. ``dtype``: the arithmetic's (the training
+    world's float32 is within 0.1 mm of float64 at its scale and a quarter faster)."""
+    if dtype != np.float64:
+        x, y, yaw, circles, boxes, beam_angles = (np.asarray(v, dtype) for v in (x, y, yaw, circles, boxes, beam_angles))
+    r0, inf, tiny = np.dtype(dtype).type(r0), np.dtype(dtype).type(np.inf), np.dtype(dtype).type(1e-12)
     a = yaw[..., None] + beam_angles  # (..., B)
     dx, dy = np.cos(a)[..., None], np.sin(a)[..., None]  # (..., B, 1)
-    best = np.full(a.shape, float(scan_range))
+    best = np.full(a.shape, scan_range, a.dtype)
     if circles.shape[-2] == 0 and boxes.shape[-2] == 0:
         return best
     circles = circles if circles.shape[-2] else np.zeros(circles.shape[:-2] + (1, 3))  # a point: hits nothing
@@ -102,7 +106,7 @@ def ray_cast(x, y, yaw, circles, boxes, beam_angles, r0: float, scan_range: floa
     disc = b * b - cc
     sq = np.sqrt(np.maximum(disc, 0.0))
     t_in, t_out = -b - sq, -b + sq
-    t = np.where(disc >= 0, np.where(t_in >= r0, t_in, np.where(t_out >= r0, r0, np.inf)), np.inf)
+    t = np.where(disc >= 0, np.where(t_in >= r0, t_in, np.where(t_out >= r0, r0, inf)), inf)
     best = np.minimum(best, t.min(axis=-1))
     # boxes: the slab method in each box's frame
     c, s = np.cos(boxes[..., 4]), np.sin(boxes[..., 4])
@@ -112,15 +116,15 @@ def ray_cast(x, y, yaw, circles, boxes, beam_angles, r0: float, scan_range: floa
     ca, sa = c[..., None, :], s[..., None, :]
     ldx = ca * dx + sa * dy  # (..., B, M)
     ldy = -sa * dx + ca * dy
-    ldx = np.where(np.abs(ldx) < 1e-12, 1e-12, ldx)
-    ldy = np.where(np.abs(ldy) < 1e-12, 1e-12, ldy)
+    ldx = np.where(np.abs(ldx) < tiny, tiny, ldx)
+    ldy = np.where(np.abs(ldy) < tiny, tiny, ldy)
     hx, hy = boxes[..., 2][..., None, :], boxes[..., 3][..., None, :]
     tx1, tx2 = (-hx - lx) / ldx, (hx - lx) / ldx
     ty1, ty2 = (-hy - ly) / ldy, (hy - ly) / ldy
     tmin = np.maximum(np.minimum(tx1, tx2), np.minimum(ty1, ty2))
     tmax = np.minimum(np.maximum(tx1, tx2), np.maximum(ty1, ty2))
     hit = (tmax >= tmin) & (tmax >= r0) & (hx > 0)
-    t = np.where(hit, np.maximum(tmin, r0), np.inf)
+    t = np.where(hit, np.maximum(tmin, r0), inf)
     best = np.minimum(best, t.min(axis=-1))
     return best
 
@@ -296,7 +300,7 @@ class DrlWorld:
         boxes = np.broadcast_to(boxes[:, None], (len(idx), self.R) + boxes.shape[1:])
         db = obstacle_distance(x[..., None], y[..., None], np.array([[FAR, FAR, 0.0]]), boxes[..., None, :])
         boxes = _nearest(boxes, np.where((db <= reach) & (boxes[..., 2] > 0), db, np.inf), [FAR, FAR, 0.0, 0.0, 0.0])
-        r = ray_cast(x, y, yaw, circ, boxes, self.beam_angles, c.radius + 0.01, c.scan_range)
+        r = ray_cast(x, y, yaw, circ, boxes, self.beam_angles, c.radius + 0.01, c.scan_range, np.float32)
         if c.noise_std > 0:
             r = r + self.rng.normal(0.0, c.noise_std, r.shape)
         return (np.clip(r, 0.0, c.scan_range) / c.scan_range).astype(np.float32)
