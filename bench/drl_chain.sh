@@ -16,4 +16,4 @@ stack-train drl --stage 1 --init $R/drl-s1b/drl.pt --episodes 4000 --eps-start 0
 stack-train drl --stage 1 --init $R/drl-s1e/drl.pt --episodes 6000 --eps-start 0.05 --eps-end 0.01 --eps-fraction 0.3 --lr 2.5e-4 --seed 6 $A $B --no-progress --out $R/drl-s1f; echo "s1f $(( $(date +%s) - t0 ))"
 stack-train drl --stage 2 --init $R/drl-s1f/best.pt --episodes 5000 --eps-start 0.3 --eps-end 0.02 --eps-fraction 0.4 --lr 2.5e-4 --seed 7 $A $B --no-progress --out $R/drl-s2b; echo "s2b $(( $(date +%s) - t0 ))"
 C="--stage 3 --follow --eps-end 0.02 --eps-fraction 0.5 --lr 2.5e-4 --envs 32 --n-step 3 --target-every 100 --time-penalty 0.01 --stall-steps 30 --eval-episodes 100"
-stack-train drl $C --init $R/drl-s2b/best.pt --eps-start 0.2 --seed 16 --max-steps 500 --episodes 6900 --collision-penalty 10 --no-progress --out $R/drl-s3j; echo "s3j $(( $(date +%s) - t0 ))"   # -> drl.pt
+stack-train drl $C --init $R/drl-s2b/best.pt --eps-start 0.2 --seed 16 --max-steps 500 --episodes 6900 --collision-penalty 10 --no-progress --out $R/drl-s3j; echo "s3j $(( $(date +%s) - t0 ))"   # -> drl-chain.pt (README "Training time")

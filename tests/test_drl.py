@@ -375,3 +375,21 @@ def test_the_training_worlds_float32_rays_read_as_float64s_do():
     r64, r32 = ray_cast(x, y, yaw, *args), ray_cast(x, y, yaw, *args, np.float32)
     assert r32.dtype == np.float32 and (r64 < 5.0).mean() > 0.05  # the scenes' bodies are in range
     assert np.abs(r32 - r64).max() < 1e-4
+
+
+def test_every_shipped_weights_file_loads_and_drl_json_names_it():
+    """Each .pt beside the policy (drl.pt, the stage-1/2 weights, drl-chain.pt) is a DuelingQNet state_dict
+    whose provenance drl.json records."""
+    import json
+
+    from stack.policies.drl.policy import WEIGHTS, load_network
+    from stack.train.drl import tensors
+
+    folder = WEIGHTS.parent
+    named = json.loads((folder / "drl.json").read_text())["weights"]
+    files = sorted(p.name for p in folder.glob("*.pt"))
+    assert {"drl.pt", "drl-chain.pt"} <= set(files) and set(files) <= set(named)
+    for f in files:
+        net = load_network(folder / f)
+        o = DrlWorld(1, 1, seed=0).observe()
+        assert net(*tensors({k: v[0] for k, v in o.items()}, torch)).shape == (1, 15)
