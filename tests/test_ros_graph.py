@@ -143,9 +143,11 @@ def test_bridge_odometry_slot_and_goals(caplog):
         first = odo0.msgs[0].pose.pose
         # the site frame: the leader's start pose, although its own odometry starts at (0, 0, 0)
         assert (first.position.x, first.position.y) == pytest.approx(START[:2], abs=0.1)
-        # (within one step's turn: the first message may come after the leader's first step, and the pid turns
-        # toward its goal from that step on at up to w_max = 1 rad/s: 0.1 rad a step)
-        assert _yaw(first.orientation) == pytest.approx(math.radians(START[2]), abs=0.12)
+        # (within a few steps' turn: the first message this subscriber gets may come a step or more after the
+        # leader's first, on a loaded machine two (1.37 rad seen in a fresh-clone CI run), and the pid turns toward
+        # its goal from its first step on at up to w_max = 1 rad/s, 0.1 rad a step; 0.4 rad is four steps' turn,
+        # still far from the odometry frame's 0, 1.57 rad off)
+        assert _yaw(first.orientation) == pytest.approx(math.radians(START[2]), abs=0.4)
         _check_odometry(odo0.latest(), lead, f"{fleet}/robot0/base_link")
         assert slot0.latest().pose.position.x == 8.0 and slot0.latest().header.frame_id == "map"
         # the follower's slot is eq. (3) about where the leader is at the same step (the leader's state of the step
