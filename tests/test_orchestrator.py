@@ -228,6 +228,11 @@ def test_ctrl_c_stops_agents_then_world_then_router(tmp_path, monkeypatch):
     assert all(p.poll() is not None for p in [*fleet.procs.values(), fleet.router])
 
 
+def _state(pid: int) -> str:
+    """A process's state letter (/proc/PID/stat: R, S, T for stopped, ...)."""
+    return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+
+
 def test_stop_all_real_processes(tmp_path):
     journal = tmp_path / "term.log"
     procs = [Proc(f"p{i}", [sys.executable, "-c", CHILD, str(journal), f"p{i}", "wait"], tmp_path / f"p{i}.log", {})
@@ -240,6 +245,10 @@ def test_stop_all_real_processes(tmp_path):
         time.sleep(0.02)
     procs[1].frozen = True
     procs[1].signal(signal.SIGSTOP)
+    stopped = time.monotonic() + 5.0  # frozen for real before stop_all lets it go (a fresh-clone CI run once saw
+    while _state(procs[1].p.pid) != "T" and time.monotonic() < stopped:  # it SIGKILLed instead: a stop still in
+        time.sleep(0.01)  # flight when the SIGCONT and SIGTERM came)
+    assert _state(procs[1].p.pid) == "T"
     stop_all([*procs, stubborn], timeout=15.0)  # generous: a let-go process under a loaded CI took over 5 s to run its handler
     assert [p.poll() for p in procs] == [0, 0]  # the frozen one was let go and handled its SIGTERM
     assert stubborn.poll() == -signal.SIGKILL
