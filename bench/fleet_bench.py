@@ -188,9 +188,10 @@ def size_row(n: int, out: Path, a, t0: float) -> dict:
         x = rounds[-1]
         print(f"[{time.time() - t0:6.0f} s] {n:2d} robots round {r + 1}: fleet {x['lockstep']['steps_per_s']:.1f}, world floor "
               f"{x['world_floor']['steps_per_s']:.1f}, ray floor {x['ray_floor']['steps_per_s']:.1f} steps/s", file=sys.stderr, flush=True)
-    rt = run_ours(n, out, a.realtime_s, realtime=True)
-    print(f"[{time.time() - t0:6.0f} s] {n:2d} robots real time: x{rt['rtf']:.2f}, compute p99 {rt['compute_p99_ms']} ms, "
-          f"state p99 {rt['state_p99_ms']} ms, sensor-to-command p99 {rt['loop_p99_ms']} ms", file=sys.stderr, flush=True)
+    rt = run_ours(n, out, a.realtime_s, realtime=True) if a.realtime_s > 0 else None
+    if rt is not None:
+        print(f"[{time.time() - t0:6.0f} s] {n:2d} robots real time: x{rt['rtf']:.2f}, compute p99 {rt['compute_p99_ms']} ms, "
+              f"state p99 {rt['state_p99_ms']} ms, sensor-to-command p99 {rt['loop_p99_ms']} ms", file=sys.stderr, flush=True)
     med = {k: _median([x[k] for x in rounds]) for k in ("lockstep", "world_floor", "ray_floor", "irsim")}
     ratio = {"fleet_over_world_floor": med["lockstep"] / med["world_floor"] if med["lockstep"] and med["world_floor"] else None,
              "fleet_over_irsim": med["lockstep"] / med["irsim"] if med["lockstep"] and med["irsim"] else None}
@@ -203,7 +204,8 @@ def speed_table(rows: list[dict]) -> str:
              "| ray floor steps/s | IR-SIM steps/s | fleet / IR-SIM (goal >= 2) | real time: x real time, compute p99 (goal < 10) / state p99 (goal < 15) / sensor-to-command p99 [ms] |",
              "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
     for r in rows:
-        m, q, rt = r["median_steps_per_s"], r["ratios"], r["realtime"]
+        m, q, rt = r["median_steps_per_s"], r["ratios"], r["realtime"] or {"rtf": None, "compute_p99_ms": None,
+                                                                         "state_p99_ms": None, "loop_p99_ms": None}
         peer = r["rounds"][-1]["irsim"]
         ir = _fmt(m["irsim"]) if m["irsim"] else ("-" if not peer else peer.get("error", "-")[:40])
         lines.append(f"| {r['robots']} | {_fmt(m['lockstep'])} | {_fmt(m['lockstep'] and m['lockstep'] * 0.1)} | {_fmt(m['world_floor'])} "
@@ -230,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[4, 8, 16, 32])
     ap.add_argument("--lockstep-s", type=float, default=30.0, help="sim seconds per lock-step run")
-    ap.add_argument("--realtime-s", type=float, default=15.0, help="sim (= wall) seconds per real-time run")
+    ap.add_argument("--realtime-s", type=float, default=15.0, help="sim (= wall) seconds per real-time run (0: none)")
     ap.add_argument("--rounds", type=int, default=3, help="interleaved rounds of fleet, floors and IR-SIM per size")
     ap.add_argument("--peer-steps", type=int, default=300, help="IR-SIM steps per run")
     ap.add_argument("--no-peer", action="store_true", help="skip IR-SIM")
@@ -238,6 +240,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--memory-s", type=float, default=10.0, help="sim seconds per memory run")
     ap.add_argument("--tiny", action="store_true", help="4 robots, 3 sim-s, 1 round, 30 IR-SIM steps: that it works")
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "fleet-bench")
+    ap.add_argument("--compare", type=Path, metavar="OLD.json", help="print this run's medians against an earlier "
+                    "run's fleet_bench.json (new / old per size and column)")
     a = ap.parse_args(argv)
     if a.tiny:
         a.sizes, a.lockstep_s, a.realtime_s, a.rounds, a.peer_steps, a.memory_size, a.memory_s = [4], 3.0, 2.0, 1, 30, 4, 3.0
@@ -264,7 +268,27 @@ def main(argv: list[str] | None = None) -> int:
     (a.out / "fleet_bench.md").write_text(text + "\n")
     (a.out / "fleet_bench.json").write_text(json.dumps({"sizes": rows, "memory": mem}, indent=2))
     print(f"\nwritten: {a.out / 'fleet_bench.md'}, {a.out / 'fleet_bench.json'}", file=sys.stderr)
+    if a.compare is not None:
+        print("\n" + compare_table(json.loads(a.compare.read_text())["sizes"], rows, a.compare))
     return 0
+
+
+def compare_table(old: list[dict], new: list[dict], old_path: Path) -> str:
+    """New / old of each size's median steps/s (fleet, floors, IR-SIM) and of the fleet's ratio to its world floor,
+    for the sizes both runs have: a slower fleet shows as a ratio under 1."""
+    cols = ("lockstep", "world_floor", "ray_floor", "irsim")
+    before = {r["robots"]: r for r in old}
+    lines = [f"against {old_path}: new / old", "| robots | fleet | world floor | ray floor | IR-SIM | fleet / world floor, old -> new |",
+             "| ---: | ---: | ---: | ---: | ---: | --- |"]
+    for r in new:
+        o = before.get(r["robots"])
+        if o is None:
+            continue
+        m, mo = r["median_steps_per_s"], o["median_steps_per_s"]
+        cells = [_fmt(m[c] / mo[c], 2) if m.get(c) and mo.get(c) else "-" for c in cols]
+        fo, fn = o["ratios"]["fleet_over_world_floor"], r["ratios"]["fleet_over_world_floor"]
+        lines.append(f"| {r['robots']} | " + " | ".join(cells) + f" | {_fmt(fo, 2)} -> {_fmt(fn, 2)} |")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

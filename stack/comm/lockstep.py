@@ -37,7 +37,9 @@ import threading
 import time
 from typing import Any, Callable, Iterable, Mapping
 
-from .messages import Clock
+import msgspec
+
+from .messages import Clock, Relayed
 
 log = logging.getLogger("stack.lockstep")
 
@@ -162,6 +164,83 @@ class DeviceWires:
         return base + wire
 
 
+class _StateHead(msgspec.Struct):
+    """The two fields of a ``State`` the relay reads (msgspec skips the rest unparsed)."""
+
+    id: int
+    step: int = -1
+
+
+_HEAD = msgspec.msgpack.Decoder(_StateHead)
+
+
+class StateRelay:
+    """World side, lock-step: the agents' states, heard once on ``*/state`` and handed on undecoded in the next
+    clock, so that no agent subscribes per sender (one delivery a step instead of one per neighbour).
+
+    ``take(k-1, answered)`` waits (bounded, ``wait_s`` wall) until the state of step k-1 of every robot that
+    commanded k-1 is in (an agent sends its state before its command, on another key, so the world may hear the
+    command first) and returns everything heard since the last clock, in arrival order: the agent sorts what it
+    takes by (step, id, seq), so the order on the wire decides nothing. The relay reads only each payload's
+    ``id`` and ``step``; a payload it cannot read is relayed all the same (it never counts as the awaited state),
+    for the agents to decode, validate and count by its key as before.
+    """
+
+    def __init__(self, cv: threading.Condition, wait_s: float = 1.0, limit_bytes: int = 4 << 20):
+        self._cv = cv
+        self.wait_s = wait_s
+        self.limit_bytes = limit_bytes  # payload bytes one clock carries at most (beyond: a flood; dropped, counted)
+        self.dropped = 0  # payloads dropped over the limit (world.json ``states_dropped``)
+        self._heard: list[Relayed] = []
+        self._bytes = 0
+        self._newest: dict[int, int] = {}  # sender -> the newest step of its states heard
+        self._missing: set[int] = set()  # whom take() waits for, of step _step
+        self._step = -1
+        self.late = 0  # clocks that went out without a state they waited for
+
+    def on_state(self, key: str, payload: bytes) -> None:
+        """A payload heard on a state key (any thread; takes the condition)."""
+        try:
+            head = _HEAD.decode(payload)
+        except (msgspec.DecodeError, msgspec.ValidationError, ValueError, TypeError, RecursionError):
+            head = None
+        with self._cv:
+            if self._bytes + len(payload) <= self.limit_bytes:
+                self._heard.append(Relayed(key=key, payload=payload))
+                self._bytes += len(payload)
+            else:
+                self.dropped += 1
+                if self.dropped == 1:
+                    log.warning("world: more than %d bytes of states on %s before one clock: dropped (counted in "
+                                "world.json states_dropped)", self.limit_bytes, key)
+            if head is None:
+                return
+            self._newest[head.id] = max(head.step, self._newest.get(head.id, -2))
+            if head.id in self._missing and head.step >= self._step:
+                self._missing.discard(head.id)
+                if not self._missing:
+                    self._cv.notify_all()  # one wake-up: the last awaited state is in
+
+    def take(self, step: int, answered: Iterable[int], stop: threading.Event) -> list[Relayed]:
+        """Every state heard so far, once the state of ``step`` of each robot in ``answered`` is among them (or
+        ``wait_s`` has passed: counted in ``late``, logged)."""
+        deadline = time.monotonic() + self.wait_s
+        with self._cv:
+            self._step = step
+            self._missing = {i for i in answered if self._newest.get(i, -2) < step}
+            while self._missing and not stop.is_set():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    self.late += 1
+                    log.warning("world: no state of step %d from %s within %.1f s: the clock goes without", step,
+                                sorted(self._missing), self.wait_s)
+                    break
+                self._cv.wait(min(left, 0.1))
+            self._missing = set()
+            heard, self._heard, self._bytes = self._heard, [], 0
+        return heard
+
+
 class StepBarrier:
     """Agent side: which step comes next and when its inputs are complete.
 
@@ -267,4 +346,4 @@ class StepBarrier:
         return True
 
 
-__all__ = ["CommandBarrier", "DeviceWires", "StepBarrier"]
+__all__ = ["CommandBarrier", "DeviceWires", "StateRelay", "StepBarrier"]

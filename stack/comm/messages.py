@@ -122,8 +122,20 @@ class Scan(_Msg):
             raise ValueError("ranges empty or beyond range_max")
 
 
+class Relayed(_Msg):
+    """A message the world heard on ``key`` and passes on undecoded (``Clock.states``): the receiver decodes,
+    validates and counts it as if it had come on ``key`` itself."""
+
+    key: str
+    payload: bytes
+
+
 class Clock(_Msg):
-    """``stack/<fleet>/world/clock``: the world's step k and sim time; ``answered`` is who commanded step k-1."""
+    """``stack/<fleet>/world/clock``: the world's step k and sim time; ``answered`` is who commanded step k-1.
+
+    In lock-step ``states`` carries every ``.../state`` payload the world heard since the previous clock (the
+    states of step k-1 of every robot that commanded k-1, and any late one), so a lock-step agent needs no
+    subscription per sender (``stack.comm.lockstep.StateRelay``); empty in real time."""
 
     step: int
     t: Finite
@@ -133,6 +145,7 @@ class Clock(_Msg):
     dead: list[int] = []  # robots whose agents are gone (killed or left) as of this step
     device_odom: dict[int, int] = {}  # robot id -> odometry samples its hosted device has sent since lock-step began
     device_scans: dict[int, int] = {}  # robot id -> whole scans its hosted lidar has sent since lock-step began
+    states: list[Relayed] = []  # lock-step: the agents' states heard since the previous clock, undecoded
 
 
 class FaultRequest(_Msg):

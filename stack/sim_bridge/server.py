@@ -19,6 +19,7 @@ went over the device's own wire); the device moves the body.
 
 from __future__ import annotations
 
+import gc
 import json
 import logging
 import threading
@@ -30,7 +31,7 @@ import numpy as np
 import zenoh
 
 from ..comm import Keys, MessageError, decode, encode
-from ..comm.lockstep import CommandBarrier, DeviceWires
+from ..comm.lockstep import CommandBarrier, DeviceWires, StateRelay
 from ..comm.messages import Answer, Clock, CmdVel, FaultAck, FaultRequest, Fix, Imu, Odom, Scan, Truth, WorldStatus
 from ..scenario import Scenario, fix_due, slot_position
 from .device_streams import relative_pose
@@ -42,6 +43,8 @@ log = logging.getLogger("stack.world")
 
 SETTLE_S = 10.0  # after the leader arrives, run on at most this long for the followers to settle
 SETTLED_M = 0.3  # followers within this of their slots: the formation has settled
+CAST_PART = 8  # robots whose rays are cast together, their sensors sent before the next part is cast
+STATE_WAIT_S = 1.0  # lock-step: how long (wall) the next clock waits for a state sent before its robot's command
 
 
 @dataclass
@@ -103,6 +106,8 @@ class WorldServer:
         self.dead: set[int] = set()  # agents gone (killed, crashed or left); announced in every Clock
         self.barrier = CommandBarrier(self._cv, lambda: self.alive, cfg.lockstep_timeout_s)
         self.wires = DeviceWires(cfg.lockstep_timeout_s)  # the devices' half of each step's commands
+        # lock-step: the agents' states, on to the next clock (beyond 64 KiB a robot, at least 4 MiB: a flood, dropped)
+        self.relay = StateRelay(self._cv, STATE_WAIT_S, limit_bytes=max(4 << 20, (64 << 10) * len(self.ids)))
         self.acks: dict[tuple[int, str], list[int]] = {}
         self._pending_faults = sorted(cfg.faults, key=lambda f: f[2])
         self.last_cmd: dict[int, tuple[float, float, float, int]] = {}  # id -> (v, w, sim t received, step)
@@ -149,6 +154,9 @@ class WorldServer:
                   wire: tuple[int, bool] | None = None) -> None:
         """Robot ``rid`` has commanded ``step`` (caller holds the lock)."""
         self.barrier.answered(rid, step, cmd, wire)
+
+    def _on_state(self, sample: zenoh.Sample) -> None:
+        self.relay.on_state(str(sample.key_expr), sample.payload.to_bytes())
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         rid = Keys.id_of(str(sample.key_expr))
@@ -223,6 +231,8 @@ class WorldServer:
                 s.declare_subscriber(k.all_robots("answer"), self._on_answer),
                 s.declare_subscriber(k.world("fault_ack"), self._on_ack),
                 s.liveliness().declare_subscriber(k.all_alive, self._on_alive, history=True)]
+        if not self.cfg.realtime:  # lock-step: the states go to the agents in the clock (StateRelay)
+            subs.append(s.declare_subscriber(k.all_robots("state"), self._on_state))
         token = None
         try:
             self._start_devices()
@@ -230,6 +240,8 @@ class WorldServer:
             status_pub.put(encode(WorldStatus(state="waiting")))
             self._wait_for_agents()
             status_pub.put(encode(WorldStatus(state="running")))
+            gc.collect()
+            gc.freeze()  # the world, its bodies and devices built: the collector walks only what the loop allocates
             result = self._loop(pubs, clock_pub, truth_pub, fault_pub)
             status_pub.put(encode(WorldStatus(state="done", t=self.t, why=result["end_reason"])))
             # let the agents stop (their final zero commands arrive) before we report what we saw last
@@ -365,38 +377,64 @@ class WorldServer:
 
     def _publish_step(self, pubs, clock_pub, truth_pub, answered: list[int], dead_now: list[int], wall0: float) -> None:
         """Step k's clock, each robot's sensors (a hosted device sends its own odometry) and the ground truth."""
-        sc, w, dt = self.sc, self.world, self.sc.dt
-        stamp = self.t if not self.cfg.realtime else time.time()
+        w, dt = self.world, self.sc.dt
         device_odom = {rid: dev.odom_sent - self._odom_base.get(rid, 0) for rid, dev in self.devices.items()}
         device_scans = {rid: lid.scans_sent - self._scan_base.get(rid, 0) for rid, lid in self.lidars.items()}
+        states = [] if self.cfg.realtime else self.relay.take(self.k - 1, answered, self.cfg.stop)
         clock_pub.put(encode(Clock(step=self.k, t=self.t, dt=dt, answered=answered, lockstep=not self.cfg.realtime,
-                                   dead=dead_now, device_odom=device_odom, device_scans=device_scans)))
-        scans = w.lidar([rid for rid in self.ids if rid not in self.lidars or rid in self.devices])
-        for rid in self.ids:
-            robot = sc.robots[w.index[rid]]
-            if rid not in self.devices:
-                v, om, pose = w.odometry(rid, dt)
-                origin = self._sim_odom_origin[rid]
-                ox, oy, oyaw = relative_pose(origin, pose) if origin is not None else pose  # the base's odom frame
-                pubs[(rid, "odom")].put(encode(Odom(id=rid, step=self.k, stamp=stamp, v=v, w=om, x=ox, y=oy, yaw=oyaw)))
-                pubs[(rid, "imu")].put(encode(Imu(id=rid, step=self.k, stamp=stamp, wz=w.gyro(rid))))
-            if fix_due(robot, self.k, dt):
-                fx, fy = w.position_fix(rid, robot.fix[1])
-                pubs[(rid, "fix")].put(encode(Fix(id=rid, step=self.k, stamp=stamp, x=fx, y=fy, std=robot.fix[1])))
-            if rid not in scans:
-                continue  # its own (simulated) sensor sends its scans
-            lid = robot.lidar
-            inc = lid.fov / (lid.beams - 1) if lid.beams > 1 else 0.0
-            a_min = -lid.fov / 2 if lid.beams > 1 else 0.0
-            pubs[(rid, "scan")].put(encode(Scan(id=rid, step=self.k, stamp=stamp, angle_min=a_min, angle_increment=inc,
-                                                range_max=lid.range, ranges=scans[rid].tolist())))
-            if rid in self.devices:
-                self.devices[rid].publish_scan(self.t, a_min, inc, lid.range, scans[rid])
+                                   dead=dead_now, device_odom=device_odom, device_scans=device_scans, states=states)))
+        self._publish_sensors(pubs)
         truth_pub.put(encode(Truth(step=self.k, t=self.t, ids=self.ids, x=w.x.tolist(), y=w.y.tolist(), yaw=w.yaw.tolist())))
         if self.cfg.realtime:  # real time: the step lasts dt of wall time
             delay = wall0 + (self.k + 1) * dt - time.monotonic()
             if delay > 0:
                 self.cfg.stop.wait(delay)
+
+    def _publish_sensors(self, pubs) -> None:
+        """Each robot's odometry, gyro, due fix and scan of step k. Every random number is drawn first, in the order a
+        single cast would draw them (the scans' noise, then each robot's odometry, gyro and fix), then the rays are
+        cast ``CAST_PART`` robots at a time and each part's sensors go out as soon as its rays are in: its agents
+        start their step while the world casts the rest, and the numbers are the same as one cast's."""
+        w, stamp = self.world, self.t if not self.cfg.realtime else time.time()
+        casting = [rid for rid in self.ids if rid not in self.lidars or rid in self.devices]  # the rest: own sensors
+        noise = w.lidar_noise(casting)
+        out = {rid: self._base_sensors(rid, stamp) for rid in self.ids}
+        for rid in (r for r in self.ids if r not in casting):
+            self._send(pubs, rid, out[rid])
+        for p0 in range(0, len(casting), CAST_PART):
+            part = casting[p0:p0 + CAST_PART]
+            scans = w.lidar(part, noise=noise)
+            for rid in part:
+                lid = self.sc.robots[w.index[rid]].lidar
+                inc = lid.fov / (lid.beams - 1) if lid.beams > 1 else 0.0
+                a_min = -lid.fov / 2 if lid.beams > 1 else 0.0
+                out[rid]["scan"] = Scan(id=rid, step=self.k, stamp=stamp, angle_min=a_min, angle_increment=inc,
+                                        range_max=lid.range, ranges=scans[rid].tolist())
+                self._send(pubs, rid, out[rid])
+                if rid in self.devices:
+                    self.devices[rid].publish_scan(self.t, a_min, inc, lid.range, scans[rid])
+
+    def _base_sensors(self, rid: int, stamp: float) -> dict:
+        """Robot ``rid``'s odometry and gyro (the world's own base; a hosted device sends its own) and its fix if one
+        is due, by topic."""
+        w, dt, robot = self.world, self.sc.dt, self.sc.robots[self.world.index[rid]]
+        out = {}
+        if rid not in self.devices:
+            v, om, pose = w.odometry(rid, dt)
+            origin = self._sim_odom_origin[rid]
+            ox, oy, oyaw = relative_pose(origin, pose) if origin is not None else pose  # the base's odom frame
+            out["odom"] = Odom(id=rid, step=self.k, stamp=stamp, v=v, w=om, x=ox, y=oy, yaw=oyaw)
+            out["imu"] = Imu(id=rid, step=self.k, stamp=stamp, wz=w.gyro(rid))
+        if fix_due(robot, self.k, dt):
+            fx, fy = w.position_fix(rid, robot.fix[1])
+            out["fix"] = Fix(id=rid, step=self.k, stamp=stamp, x=fx, y=fy, std=robot.fix[1])
+        return out
+
+    @staticmethod
+    def _send(pubs, rid: int, msgs: dict) -> None:
+        for topic in ("odom", "imu", "fix", "scan"):  # the order they always went out in
+            if topic in msgs:
+                pubs[(rid, topic)].put(encode(msgs[topic]))
 
     def _commands(self) -> tuple[dict[int, tuple[float, float]], list[int]]:
         """Lock-step: wait for step k's commands (the barrier). Each simulated base's command for the step, with its
@@ -441,6 +479,7 @@ class WorldServer:
         log_rows["cmd_w"].append(np.zeros(len(self.ids)))
         result = {"end_reason": end_reason, "steps": self.k, "sim_time_s": self.t, "wall_time_s": wall,
                   "steps_per_s": self.k / wall if wall > 0 else None, "late_steps": self.late_steps,
+                  "states_late": self.relay.late, "states_dropped": self.relay.dropped,
                   "malformed": self.malformed, "events": self.events,
                   "last_cmd": {str(r): {"v": c[0], "w": c[1], "t": c[2], "step": c[3]} for r, c in self.last_cmd.items()},
                   "leader_arrival_s": arrived_at}

@@ -117,57 +117,74 @@ class World:
         self._sync_bodies()
 
     # --- sensors -----------------------------------------------------------------------
-    def _beam_mask(self, i: int, x: float, y: float, yaw: float, ang: np.ndarray) -> np.ndarray:
-        """Beams (angles ``ang``, robot frame) of robot i standing at (x, y, yaw) that can hit anything: those
-        inside the angular span of a body within range.
+    def _beam_masks(self, idx: list[int], poses: np.ndarray | None = None,
+                    angles: list[np.ndarray] | None = None) -> list[np.ndarray]:
+        """For each robot index in ``idx`` (standing at ``poses[j]`` = (x, y, yaw), default where it is, with beam
+        angles ``angles[j]``, default its lidar's): the beams that can hit anything, those inside the angular span
+        of a body within range. One numpy pass over every (robot, nearby body) pair of the part.
 
         Exact culling, not an approximation: a beam outside every nearby body's span cannot hit,
         so it is not cast and reads max range. Static obstacles are bounded by their pybullet AABBs,
-        robots by their circles; both grown by CULL_MARGIN (Bullet's collision margin).
+        robots by their circles; both grown by CULL_MARGIN (Bullet's collision margin). Rays that start inside
+        or at a body (another robot's disc, a box's AABB) are all cast.
         """
-        lid = self.sc.robots[i].lidar
-        r0 = self.ray_offsets[i]
-        centres, halves = [], []
+        I = np.asarray(idx, int)
+        pose = np.column_stack([self.x[I], self.y[I], self.yaw[I]]) if poses is None else np.asarray(poses, float)
+        ang = [self.beam_angles[i] for i in idx] if angles is None else angles
+        x, y, yaw = pose[:, 0:1], pose[:, 1:2], pose[:, 2]
+        rng = np.array([self.sc.robots[i].lidar.range for i in idx])[:, None]
+        r0 = np.array([self.ray_offsets[i] for i in idx])[:, None]
         # other robots: discs
-        dx, dy = np.delete(self.x, i) - x, np.delete(self.y, i) - y
-        rj = np.delete(self.radii, i) + CULL_MARGIN
+        dx, dy = self.x[None, :] - x, self.y[None, :] - y
+        rj = np.broadcast_to(self.radii[None, :] + CULL_MARGIN, dx.shape)
         d = np.hypot(dx, dy)
-        near = d - rj <= lid.range
-        if (d[near] - rj[near] <= r0).any():
-            return np.ones(ang.size, bool)  # rays start inside or at another body: cast everything
-        centres.append(np.arctan2(dy[near], dx[near]))
-        halves.append(np.arcsin(np.minimum(1.0, rj[near] / d[near])))
+        near = d - rj <= rng
+        near[np.arange(len(I)), I] = False  # not itself
+        cast_all = (near & (d - rj <= r0)).any(1)
+        rows, cols = np.nonzero(near)
+        centres = [np.arctan2(dy[rows, cols], dx[rows, cols])]
+        halves = [np.arcsin(np.minimum(1.0, rj[rows, cols] / d[rows, cols]))]
+        pair_rows = [rows]
         # obstacles: axis-aligned boxes from pybullet's AABBs
         if len(self.obstacle_aabbs):
             lo, hi = self.obstacle_aabbs[:, 0], self.obstacle_aabbs[:, 1]
-            ddx = np.maximum.reduce([lo[:, 0] - x, np.zeros(len(lo)), x - hi[:, 0]])
-            ddy = np.maximum.reduce([lo[:, 1] - y, np.zeros(len(lo)), y - hi[:, 1]])
+            ddx = np.maximum(np.maximum(lo[None, :, 0] - x, 0.0), x - hi[None, :, 0])
+            ddy = np.maximum(np.maximum(lo[None, :, 1] - y, 0.0), y - hi[None, :, 1])
             dd = np.hypot(ddx, ddy)
-            near = dd <= lid.range
-            if (dd[near] <= r0 + CULL_MARGIN).any():
-                return np.ones(ang.size, bool)  # rays may start inside a box: cast everything
-            lo, hi, dd = lo[near], hi[near], dd[near]
-            cx = np.stack([lo[:, 0], hi[:, 0], lo[:, 0], hi[:, 0]], 1) - x
-            cy = np.stack([lo[:, 1], lo[:, 1], hi[:, 1], hi[:, 1]], 1) - y
-            corners = np.arctan2(cy, cx)  # (m, 4)
+            near_o = dd <= rng
+            cast_all |= (near_o & (dd <= r0 + CULL_MARGIN)).any(1)
+            rows, cols = np.nonzero(near_o)
+            px, py = x[rows, 0][:, None], y[rows, 0][:, None]
+            l, h = lo[cols], hi[cols]
+            cx = np.stack([l[:, 0], h[:, 0], l[:, 0], h[:, 0]], 1) - px
+            cy = np.stack([l[:, 1], l[:, 1], h[:, 1], h[:, 1]], 1) - py
+            corners = np.arctan2(cy, cx)  # (pairs, 4)
             mid = np.arctan2(np.sin(corners).sum(1), np.cos(corners).sum(1))
             offs = (corners - mid[:, None] + np.pi) % (2 * np.pi) - np.pi
-            pad = np.arcsin(np.minimum(1.0, CULL_MARGIN / dd))
+            with np.errstate(divide="ignore"):  # a robot inside a box's AABB (dd 0) casts all its beams anyway
+                pad = np.arcsin(np.minimum(1.0, CULL_MARGIN / dd[rows, cols]))
             lo_a, hi_a = mid + offs.min(1) - pad, mid + offs.max(1) + pad
             centres.append((lo_a + hi_a) / 2)
             halves.append((hi_a - lo_a) / 2)
-        c = np.concatenate(centres) - yaw  # to the robot frame
+            pair_rows.append(rows)
+        rows = np.concatenate(pair_rows)
+        c = np.concatenate(centres) - yaw[rows]  # to each robot's frame
         h = np.concatenate(halves)
+        return [np.ones(ang[j].size, bool) if cast_all[j] else self._within(ang[j], c[rows == j], h[rows == j])
+                for j in range(len(I))]
+
+    @staticmethod
+    def _within(ang: np.ndarray, c: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """The beams at ``ang`` within any span (centre ``c``, half-width ``h``)."""
         if c.size == 0:
             return np.zeros(ang.size, bool)
         diff = (ang[None, :] - c[:, None] + np.pi) % (2 * np.pi) - np.pi
         return (np.abs(diff) <= h[:, None]).any(axis=0)
 
-    def _rays(self, i: int, x: float, y: float, yaw: float,
-              ang: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Robot i's rays from (x, y, yaw) at beam angles ``ang``: (mask of the beams cast, froms, tos)."""
+    def _rays(self, i: int, x: float, y: float, yaw: float, ang: np.ndarray,
+              m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Robot i's rays from (x, y, yaw) at beam angles ``ang``, of the beams in ``m``: (m, froms, tos)."""
         lid = self.sc.robots[i].lidar
-        m = self._beam_mask(i, x, y, yaw, ang) if self.cull else np.ones(ang.size, bool)
         a = yaw + ang[m]
         c, s = np.cos(a), np.sin(a)
         r0 = self.ray_offsets[i]
@@ -182,31 +199,49 @@ class World:
         fracs = np.ones(len(F))
         batch = p.MAX_RAY_INTERSECTION_BATCH_SIZE - 1
         for s0 in range(0, len(F), batch):
-            res = p.rayTestBatch(F[s0:s0 + batch].tolist(), T[s0:s0 + batch].tolist(), numThreads=1, physicsClientId=self.cid)
+            # numpy arrays as they are (pybullet reads them directly: a third cheaper than lists of floats here)
+            res = p.rayTestBatch(F[s0:s0 + batch], T[s0:s0 + batch], numThreads=1, physicsClientId=self.cid)
             fracs[s0:s0 + len(res)] = [h[2] if h[0] >= 0 else 1.0 for h in res]
         self.rays_cast += len(F)
         return fracs
 
-    def _ranges(self, i: int, m: np.ndarray, fracs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Robot i's ranges from the hit fractions of its cast beams (``m``): noise added, clipped to [0, range]."""
+    def _ranges(self, i: int, m: np.ndarray, fracs: np.ndarray, noise: np.ndarray | None) -> np.ndarray:
+        """Robot i's ranges from the hit fractions of its cast beams (``m``): ``noise`` added, clipped to [0, range]."""
         lid = self.sc.robots[i].lidar
         r0 = self.ray_offsets[i]
         f = np.ones(m.size)
         f[m] = fracs
         ranges = np.where(f >= 1.0, lid.range, r0 + f * (lid.range - r0))
-        if lid.noise_std > 0:
-            ranges = ranges + rng.normal(0.0, lid.noise_std, m.size)
+        if noise is not None:
+            ranges = ranges + noise
         return np.clip(ranges, 0.0, lid.range)
 
-    def lidar(self, which: list[int] | None = None) -> dict[int, np.ndarray]:
-        """Ranges per robot from one ``rayTestBatch`` (noise added, clipped to [0, range])."""
-        idx = [self.index[r] for r in (which if which is not None else self.ids)]
-        rays = [self._rays(i, self.x[i], self.y[i], self.yaw[i], self.beam_angles[i]) for i in idx]
+    def _noise(self, i: int, rng: np.random.Generator, beams: int | None = None) -> np.ndarray | None:
+        """Robot i's range noise for one scan of ``beams`` beams (default its lidar's; None: a noiseless lidar). It
+        depends on no ray, so it can be drawn before the cast."""
+        lid = self.sc.robots[i].lidar
+        n = self.beam_angles[i].size if beams is None else beams
+        return rng.normal(0.0, lid.noise_std, n) if lid.noise_std > 0 else None
+
+    def lidar_noise(self, which: list[int]) -> dict[int, np.ndarray | None]:
+        """The range noise of these robots' next scans from the world's generator, in this order: what ``lidar(which)``
+        draws itself, drawn ahead so that the world can cast its robots in parts (``lidar(part, noise=...)``) and
+        hand each part on at once with the same numbers."""
+        return {rid: self._noise(self.index[rid], self.rng) for rid in which}
+
+    def lidar(self, which: list[int] | None = None, noise: dict[int, np.ndarray | None] | None = None) -> dict[int, np.ndarray]:
+        """Ranges per robot from one ``rayTestBatch`` (noise added, clipped to [0, range]); ``noise``: drawn ahead
+        (``lidar_noise``), else drawn here."""
+        which = list(which if which is not None else self.ids)
+        noise = noise if noise is not None else self.lidar_noise(which)
+        idx = [self.index[r] for r in which]
+        masks = self._beam_masks(idx) if self.cull else [np.ones(self.beam_angles[i].size, bool) for i in idx]
+        rays = [self._rays(i, self.x[i], self.y[i], self.yaw[i], self.beam_angles[i], m) for i, m in zip(idx, masks)]
         fracs = self._cast([f for _, f, _ in rays], [t for _, _, t in rays])
         out, pos = {}, 0
-        for i, (m, _, _) in zip(idx, rays):
+        for rid, i, (m, _, _) in zip(which, idx, rays):
             n = int(m.sum())
-            out[self.ids[i]] = self._ranges(i, m, fracs[pos:pos + n], self.rng)
+            out[rid] = self._ranges(i, m, fracs[pos:pos + n], noise[rid])
             pos += n
         return out
 
@@ -228,12 +263,13 @@ class World:
             p.resetBasePositionAndOrientation(body, [x, y, LIDAR_Z], p.getQuaternionFromEuler([0, 0, yaw]),
                                               physicsClientId=self.cid)
         try:
-            m, froms, tos = self._rays(i, x, y, yaw, ang)
+            m = self._beam_masks([i], np.array([[x, y, yaw]]), [ang])[0] if self.cull else np.ones(ang.size, bool)
+            m, froms, tos = self._rays(i, x, y, yaw, ang, m)
             fracs = self._cast([froms], [tos])
         finally:
             if moved:
                 self._sync_body(i)
-        return self._ranges(i, m, fracs, self._cast_rng(i))
+        return self._ranges(i, m, fracs, self._noise(i, self._cast_rng(i), ang.size))
 
     def _cast_rng(self, i: int) -> np.random.Generator:
         if i not in self._cast_rngs:
