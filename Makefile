@@ -3,9 +3,11 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-$(shell cksum pyproject.toml | cut -d' ' -f1)
 
-.PHONY: demo test bench core-check clean
+.PHONY: demo test bench core-check clean screenshots
 
 $(STAMP): pyproject.toml
+	@# the viewer tests drive Lichtblick in Debian's chromium (Playwright from PyPI, no browser download)
+	command -v chromium >/dev/null || (apt-get update -qq && apt-get install -y -qq chromium >/dev/null)
 	python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[test]'
@@ -16,6 +18,10 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q
+
+# the README's viewer pictures, taken by the viewer tests from the real viewer (Lichtblick in chromium)
+screenshots: $(STAMP)
+	STACK_SHOTS=docs/figures $(PY) -m pytest -q tests/test_viewer.py
 
 bench: $(STAMP)
 	$(PY) -m pip install -q -e '.[test,bench]'

@@ -163,6 +163,20 @@ def test_agents_record_and_serve_their_own_view_in_a_lockstep_fleet(tmp_path):
     assert advertised == _want(2)
     assert set(seen) == set(_want(2)), sorted(set(_want(2)) - set(seen))
     assert seen["/robot_2/state"] == steps
+    _clean_in_lichtblick(tmp_path, "view-1.mcap", _want(1), msgs["/robot_1/state"][-1][0])
+
+
+def _clean_in_lichtblick(folder: Path, name: str, topics, at_ns: int) -> None:
+    """Issue 38: a robot's own recording opens in the real viewer (tests/lichtblick.py) with no problem reported
+    (every JSON schema readable: the covariance, the decision, the neighbour table) and every topic listed."""
+    from lichtblick import Viewer
+
+    with Viewer(folder) as v:
+        v.open_recording(name, at_ns=at_ns)
+        v.page.wait_for_timeout(2000)
+        problems, listed = v.problems(), set(v.topics())
+    assert not problems, "the viewer reports:\n" + "\n".join(problems)
+    assert set(topics) <= listed, sorted(set(topics) - listed)
 
 
 @pytest.mark.fleet

@@ -41,17 +41,32 @@ def frame(rid: int, estimate: bool = False) -> str:
     return f"robot_{rid}/estimate" if estimate else f"robot_{rid}"
 
 
-def _obj(name: str, fields: dict[str, str]) -> Schema:
-    doc = {"title": name, "type": "object", "properties": {k: {"type": v} for k, v in fields.items()}}
+def _field(spec) -> dict:
+    """A property's JSON schema: a type name (``"number"``), ``[item]`` (an array of item), ``{"*": value}``
+    (an object whose keys are free and whose values are value) or ``{name: spec}`` (an object with those
+    properties). Complete all the way down: a viewer that meets an array without ``items`` cannot read the topic."""
+    if isinstance(spec, str):
+        return {"type": spec}
+    if isinstance(spec, list):
+        return {"type": "array", "items": _field(spec[0])}
+    if set(spec) == {"*"}:
+        return {"type": "object", "properties": {}, "additionalProperties": _field(spec["*"])}
+    return {"type": "object", "properties": {k: _field(v) for k, v in spec.items()}}
+
+
+def _obj(name: str, fields: dict) -> Schema:
+    doc = {"title": name, **_field(fields)}
     return Schema(name=name, encoding="jsonschema", data=json.dumps(doc).encode())
 
 
+LINK_COUNTS = {"delivered": "integer", "dropped_range": "integer", "dropped_loss": "integer"}
 JSON_SCHEMAS = {
     "clock": _obj("stack.Clock", {"step": "integer", "t": "number", "dt": "number", "lockstep": "boolean",
-                                  "answered": "array", "dead": "array"}),
+                                  "answered": ["integer"], "dead": ["integer"]}),
     "metrics": _obj("stack.Metrics", {"step": "integer", "t": "number", "formation_error_rms": "number",
                                       "formation_error_max": "number", "min_robot_distance": "number",
-                                      "min_obstacle_distance": "number", "leader": "integer", "errors": "object"}),
+                                      "min_obstacle_distance": "number", "leader": "integer",
+                                      "errors": {"*": "number"}}),
     "cmd_vel": _obj("stack.CmdVel", {"id": "integer", "step": "integer", "stamp": "number", "v": "number", "w": "number"}),
     "state": _obj("stack.State", {"id": "integer", "step": "integer", "role": "string", "policy": "string",
                                   "situation": "string", "x": "number", "y": "number", "yaw": "number", "v": "number",
@@ -171,14 +186,16 @@ AGENT_TOPICS = ("estimate", "scan", "cmd_vel", "state", "diag", "covariance", "d
 its state and diag (the fleet's schemas), and: the covariance, the decision (situation, policy, target, goal),
 the neighbours it heard and what its radio model dropped, a scene of all that, and its links this step."""
 AGENT_SCHEMAS = {
-    "covariance": _obj("stack.Covariance", {"step": "integer", "t": "number", "cov": "array", "sigma_x": "number",
+    "covariance": _obj("stack.Covariance", {"step": "integer", "t": "number", "cov": ["number"], "sigma_x": "number",
                                             "sigma_y": "number", "sigma_yaw": "number", "cov_trace": "number"}),
     "decision": _obj("stack.Decision", {"step": "integer", "t": "number", "role": "string", "situation": "string",
-                                        "policy": "string", "target": "array", "goal": "array", "stale": "string",
+                                        "policy": "string", "target": ["number"], "goal": ["number"], "stale": "string",
                                         "led_since": "number"}),
-    "heard": _obj("stack.Heard", {"step": "integer", "t": "number", "neighbours": "array", "gone": "array",
-                                  "delivered": "integer", "dropped_range": "integer", "dropped_loss": "integer",
-                                  "rejected": "integer", "links": "object"}),
+    "heard": _obj("stack.Heard", {"step": "integer", "t": "number",
+                                  "neighbours": [{"id": "integer", "role": "string", "x": "number", "y": "number",
+                                                  "yaw": "number", "v": "number", "w": "number", "age": "number"}],
+                                  "gone": ["integer"], "delivered": "integer", "dropped_range": "integer",
+                                  "dropped_loss": "integer", "rejected": "integer", "links": {"*": LINK_COUNTS}}),
 }
 _GOAL = Color(r=0.2, g=0.8, b=0.2, a=0.8)
 _HEARD = Color(r=0.6, g=0.6, b=0.6, a=0.5)

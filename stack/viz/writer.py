@@ -27,6 +27,27 @@ from .endpoint import parse_viz_endpoint
 
 log = logging.getLogger("stack.record")
 
+REFUSED_HINT = ("the live server speaks the foxglove.sdk.v1 WebSocket subprotocol (foxglove-sdk 0.30); a viewer that "
+                "offers only foxglove.websocket.v1 (older Foxglove and Lichtblick releases) is refused: see "
+                "docs/visualisation.md, 'Which viewers connect'")
+
+
+class _RefusedHint(logging.Filter):
+    """The SDK's server logs a refused client as "handshake failed" and no more: say why, on the same line."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if "handshake failed" in record.getMessage() and REFUSED_HINT not in record.getMessage():
+            record.msg, record.args = f"{record.getMessage()}: {REFUSED_HINT}", ()
+        return True
+
+
+def install_refused_hint() -> None:
+    """Once per process: the hint on the SDK server's logger."""
+    server_log = logging.getLogger("foxglove.websocket.server")
+    if not any(isinstance(f, _RefusedHint) for f in server_log.filters):
+        server_log.addFilter(_RefusedHint())
+
+
 COMPRESSION = {"zstd": MCAPCompression.Zstd, "lz4": MCAPCompression.Lz4, "none": None}
 _STOP = object()
 _JSON = msgspec.json.Encoder()
@@ -98,6 +119,7 @@ class QueuedWriter:
                 self._writer = foxglove.open_mcap(self.cfg.out, allow_overwrite=True, context=ctx, writer_options=opts)
             if self.cfg.viz is not None:
                 host, port = parse_viz_endpoint(self.cfg.viz, self.cfg.allow_remote)
+                install_refused_hint()
                 self._server = foxglove.start_server(name=self.server_name, host=host, port=port,
                                                      capabilities=[Capability.Time], context=ctx)
         except (RuntimeError, OSError) as e:
