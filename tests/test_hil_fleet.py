@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import run_cli, run_fleet, scenario_dict, write_scenario
+from conftest import lockstep_report, run_cli, run_fleet, scenario_dict, write_scenario
 
 
 @pytest.fixture(scope="module")
@@ -148,21 +148,6 @@ def test_mixed_fleet_one_driver_of_each_kind(tmp_path, sim_run):
     assert "/dev/pts/999" not in (out / "scenario.agents.yaml").read_text()
 
 
-WALL_CLOCK = ("wall_time_s", "steps_per_s", "control_loop_ms", "control_compute_ms", "state_latency_ms")
-"""Report entries measured on the wall clock: the only ones a lock-step run may change."""
-WALL_CLOCK_ROBOT = ("device_odom_strays",)
-"""Per robot, the same: how many samples a device sent on the wall clock before lock-step began were still on its
-wire after the agent's sync step (dropped, counted; a fresh-clone CI run saw 0 and 2 for the CAN robot, with the
-tracks the same to the bit)."""
-
-
-def _lockstep_part(rep: dict) -> dict:
-    """The report without what the wall clock measures."""
-    out = {k: v for k, v in rep.items() if k not in WALL_CLOCK}
-    out["robots"] = {rid: {k: v for k, v in r.items() if k not in WALL_CLOCK_ROBOT} for rid, r in rep["robots"].items()}
-    return out
-
-
 @pytest.mark.fleet
 def test_a_device_fleet_in_lock_step_repeats_itself_to_the_bit(tmp_path):
     """One robot per driver kind on hardware-like devices (every 10 ms encoder sample, a rover's EKF origin at boot,
@@ -189,7 +174,7 @@ def test_a_device_fleet_in_lock_step_repeats_itself_to_the_bit(tmp_path):
         assert not any(bounds.values()), f"run {run}: a wall-clock bound expired: {bounds}"
         faults = {rid: r["driver_fault"] for rid, r in rep["robots"].items() if r["driver_fault"]}
         assert not faults, f"run {run}: a driver faulted (bring-up runs on the wall clock: a stalled machine): {faults}"
-        reps.append(_lockstep_part(rep))
+        reps.append(lockstep_report(rep))
         with np.load(tmp_path / run / "truth.npz") as z:
             tracks.append({k: z[k] for k in z.files})
     assert reps[0]["end_reason"] == "duration" and set(reps[0]["drivers"].values()) == {"mavlink", "can", "jackal", "sim"}
