@@ -17,7 +17,7 @@ demo: $(STAMP)
 	$(VENV)/bin/stack-fleet run scenarios/four-robot-diamond.yaml --out runs/demo
 
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q --durations=25
 
 # the README's viewer pictures, taken by the viewer tests from the real viewer (Lichtblick in chromium)
 screenshots: $(STAMP)

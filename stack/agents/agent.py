@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import zenoh
 
 from ..comm import Keys, MessageError, decode, encode, receive
+from ..comm.link import GoneJudge, LinkWatch
 from ..comm.lockstep import StepBarrier
 from ..comm.messages import Answer, Clock, Diag, Fix, Relayed, Scan, State, WorldStatus
 from ..drivers import Driver, DriverLimits, make_driver
@@ -147,6 +148,9 @@ class Agent:
         self._lidar_taken = (0, None)  # lock-step: (lidar_n, sim time) when a new scan was last taken
         self.lidar_late = 0  # lock-step steps that went on without all of the lidar's scans
         self.view = None  # this robot's own recording / live view (``view.AgentView``), when asked for
+        # real time: our session's link to its router(s), and the peers' tokens judged by it (``stack.comm.link``)
+        self.link = LinkWatch(session, clock=self._now)
+        self.judge = GoneJudge(self.link)
 
     @property
     def role(self) -> str:
@@ -310,12 +314,13 @@ class Agent:
         rid = Keys.id_of(str(sample.key_expr))
         if rid is None or rid == self.id:
             return
+        if sample.kind == zenoh.SampleKind.DELETE:
+            self.judge.deleted(rid)  # real time: gone once the link says it was not our own loss (_link_tick)
+            log.info("agent %d: robot %d's liveliness token went away", self.id, rid)
+            return
+        self.judge.returned(rid)
         with self._cv:
-            if sample.kind == zenoh.SampleKind.DELETE:
-                self._in.dead.add(rid)  # real time: the step drops it from its neighbours
-                log.info("agent %d: robot %d left (liveliness lost)", self.id, rid)
-            else:
-                self._in.dead.discard(rid)
+            self._in.dead.discard(rid)
 
     # --- main loop -------------------------------------------------------------------
     def run(self) -> int:
@@ -490,9 +495,29 @@ class Agent:
         q.extend(rest)
         return tuple(_sample(odo, fix, ts) for (odo, fix, _), ts in zip(items, times))
 
+    def _link_tick(self, now: float) -> str | None:
+        """Real time, each tick: our link to the router(s) (``"no-network"`` while it is down: the robot holds),
+        and the peers whose tokens went away while it was up (gone)."""
+        change = self.link.poll()
+        if change == "lost":
+            log.warning("agent %d: t=%.1f s: lost its router(s): holding (zero velocity; peers kept, no failover) "
+                        "until the link is back", self.id, now)
+        elif change == "back":
+            o = self.link.outages[-1]
+            log.warning("agent %d: t=%.1f s: router link back after %.1f s: going on", self.id, now, o.end - o.start)
+        gone = self.judge.confirmed()
+        if gone:
+            log.info("agent %d: robots %s left (liveliness lost while our link was up)", self.id, gone)
+            with self._cv:
+                self._in.dead.update(gone)
+        return None if self.link.up else "no-network"
+
     def _realtime_inputs(self) -> StepInputs | None:
         """Real time: what arrived by this tick. Nothing before the first odometry sample and the first scan."""
         now = self._now()
+        held = self._link_tick(now)
+        if held is not None:
+            self._hold("no router")
         with self._cv:
             scan = self._current_scan(now)
             if scan is None or (not self._in.odometry and self.step < 0):
@@ -507,7 +532,7 @@ class Agent:
             t_run = wc[0] + (now - wc[1]) if wc is not None else now
             dead, scan_t = frozenset(self._in.dead), self._in.scan_t
         return StepInputs(step=self.step + 1, t=now, t_run=t_run, now=time.time(), odometry=odometry, scan=scan,
-                          scan_t=scan_t, fixes=fixes, states=states, dead=dead)
+                          scan_t=scan_t, fixes=fixes, states=states, dead=dead, held=held)
 
     def _current_scan(self, now: float) -> Scan | None:
         """The newest scan: the world's, or the robot's own where its driver reads one (a Jackal's ``LaserScan``:
@@ -566,6 +591,8 @@ class Agent:
         c, pc = pl.radio.counters, pl.counters
         with self._cv:
             malformed = dict(self.malformed)
+            wc = self._in.world_clock
+        off = wc[0] - wc[1] if wc is not None else 0.0  # our clock -> run time (the world's, where we hear one)
         d = Diag(id=self.id, stamp=self._stamp(), step=self.step, state=state, sent=self.sent, received=c.received,
                  delivered=c.delivered, dropped_loss=c.dropped_loss, dropped_range=c.dropped_range,
                  malformed=sum(malformed.values()), malformed_by_key=malformed, loop_hist=self.hist.as_dict(),
@@ -577,7 +604,9 @@ class Agent:
                  device_odom_late=self.barrier.device_late, device_odom_strays=self.barrier.strays,
                  odom_stale=pc.odom_stale, lidar_stale=pc.lidar_stale, scans_from_driver=self.scans_from_driver,
                  shield_masked=getattr(pl.policy, "masked", None), guard_caps=pl.guard.capped,
-                 guard_slides=pl.guard.slides, links=pl.radio.links(), stuck=pl.decision.livelock())
+                 guard_slides=pl.guard.slides, links=pl.radio.links(), stuck=pl.decision.livelock(),
+                 led=[list(iv) for iv in pl.drove_led], held_steps=pl.held_steps, tokens_kept=self.judge.discarded,
+                 link_outages=[[o.start + off, None if o.end is None else o.end + off] for o in self.link.outages])
         self._diag_pub.put(encode(d))
         if self.view is not None:
             self.view.on_diag(d)

@@ -203,7 +203,7 @@ def _policy(run: _Run) -> None:
 
 
 def _session_config(cfg) -> SessionConfig:
-    return SessionConfig(mode="client", connect=[cfg.connect], config_file=cfg.zenoh_config, allow_remote=cfg.allow_remote)
+    return SessionConfig(mode="client", connect=cfg.connect.split(","), config_file=cfg.zenoh_config, allow_remote=cfg.allow_remote)
 
 
 def _with_session(run: _Run) -> None:

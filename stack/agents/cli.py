@@ -10,7 +10,7 @@ import sys
 import threading
 
 from ..argtypes import fleet_name
-from ..comm.session import ConfigFileError, EndpointError, SessionConfig, SessionError, check_endpoint, open_session
+from ..comm.session import ConfigFileError, EndpointError, SessionConfig, SessionError, endpoint_list, open_session
 from ..drivers import DriverError, UnknownDriver
 from ..policies import PolicyUnavailable
 from ..policies import factory as policy_factory
@@ -37,7 +37,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--scenario", required=True, help="scenario YAML")
     ap.add_argument("--policy", choices=policy_names(), help="override the robot's policy")
     ap.add_argument("--driver", choices=driver_names(), help="override the robot's driver")
-    ap.add_argument("--connect", default="tcp/127.0.0.1:7447", help="Zenoh router endpoint (default %(default)s)")
+    ap.add_argument("--connect", default="tcp/127.0.0.1:7447", help="Zenoh router endpoint(s), comma-separated: the robot joins the first it reaches and, having lost it, any of them (default %(default)s)")
     ap.add_argument("--fleet", default="default", type=fleet_name, help="fleet name, the key prefix stack/<fleet>/ (default %(default)s)")
     ap.add_argument("--lockstep", action="store_true", help="answer the simulated world's steps (set by stack-fleet)")
     ap.add_argument("--steps", type=int, help="stop after this many control steps")
@@ -64,7 +64,7 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
         raise ScenarioError(f"--role: robot {a.id} is {role} in {a.scenario}, not {a.role}")
     if a.steps is not None and a.steps < 1:
         raise ScenarioError(f"--steps: must be >= 1, got {a.steps}")
-    check_endpoint(a.connect, a.allow_remote)
+    endpoint_list(a.connect, a.allow_remote)
     _check_flags(a)
     if a.policy or a.driver:
         sc = with_overrides(sc, policy=a.policy, driver=a.driver)
@@ -140,7 +140,7 @@ def main(cfg: AgentConfig) -> int:
         signal.signal(sig, on_signal)
     log.info("agent %d config: %s", cfg.robot_id, {k: v for k, v in vars(cfg).items() if k not in ("scenario", "stop")})
     try:
-        with open_session(SessionConfig(mode="client", connect=[cfg.connect], config_file=cfg.zenoh_config,
+        with open_session(SessionConfig(mode="client", connect=cfg.connect.split(","), config_file=cfg.zenoh_config,
                                         allow_remote=cfg.allow_remote)) as session:
             agent = Agent(cfg, session)
             holder.append(agent)

@@ -7,7 +7,8 @@ what arrived by the agent's own tick) and sends the output; a test feeds it dire
 Time. Every input carries its time on the agent's clock (``t``, seconds): in lock-step the world's sim time,
 in real time the agent's monotonic clock. The estimator predicts over the measured interval between odometry
 samples (every sample the driver delivered since the last step, in order), never over a count of steps or
-scans; ``max_gap_s`` bounds one prediction (over a longer gap the rates are unknown).
+scans; ``max_gap_s`` bounds one prediction (over a longer gap the rates are unknown: the base's own dead-reckoned
+pose carries the estimate across it, where the sample has one).
 
 Staleness, per stream, on the step's time:
 
@@ -41,6 +42,7 @@ from ..policies import make_policy
 from .decision import DecisionLayer, Neighbour, obstacle_distance
 from .frames import OdomFrame
 from .guard import CollisionGuard, GuardConfig
+from .quorum import Membership
 
 log = logging.getLogger("stack.agent")
 
@@ -85,6 +87,9 @@ class StepInputs:
     """Neighbours' states since the last step, in the order to offer them."""
     dead: frozenset[int] = frozenset()
     """Robots known to be gone."""
+    held: str | None = None
+    """Why this robot holds whatever the step decides (its session lost its routers: ``"no-network"``). The estimator
+    runs on; who is gone, and so the roles, stay as they were; the command is zero."""
 
 
 @dataclass(frozen=True)
@@ -129,6 +134,7 @@ class StepCounters:
     odom_stale: int = 0
     lidar_stale: int = 0
     out_of_order: int = 0  # odometry samples older than the estimate (dropped)
+    gaps_bridged: int = 0  # odometry gaps beyond max_gap_s carried by the base's own dead-reckoned pose
     noticed: dict[int, float] = field(default_factory=dict)  # robot id -> run time this agent dropped it
 
 
@@ -163,7 +169,11 @@ class StepPipeline:
         self.neighbours: dict[int, Neighbour] = {}
         self.scans: deque[np.ndarray] = deque(maxlen=N_SCANS)
         self.gone: set[int] = set()
+        f = scenario.formation
+        self.membership = Membership((r.id for r in scenario.robots), f.leader if f is not None else None)
         self.led_since: float | None = None
+        self.drove_led: list[list[float]] = []  # [start, end] run times this robot drove as leader
+        self.held_steps = 0  # steps held: the network (``StepInputs.held``) or no quorum
         self.counters = StepCounters()
         lid = robot.lidar
         self.guard = CollisionGuard(robot.radius, lid.fov, lid.beams, lid.range, self.cfg.guard)
@@ -176,7 +186,9 @@ class StepPipeline:
 
     # --- the step ------------------------------------------------------------------------------
     def step(self, inp: StepInputs) -> StepOutput:
-        self._note_gone(inp)
+        if inp.held is None:  # a robot that cannot hear keeps its peers: their tokens went with its own link
+            self._note_gone(inp)
+            self.membership.update(self.gone)
         self.estimate(inp)
         pose = self.estimator.pose
         self._neighbours(inp, pose)
@@ -187,11 +199,34 @@ class StepPipeline:
         if self.scans:
             dec = self._decide(inp, pose)
             situation, obs, target = dec.situation, dec.obs, dec.target
-            if dec.obs is not None and stale is None:
+            held = self._held_why(inp)
+            if held is not None:
+                situation = held
+                self.held_steps += 1
+            elif dec.obs is not None and stale is None:
                 v, w = self._guarded(*self._act(dec, inp.t_run), inp)
+        self._note_led(inp.t_run, self.role == "leader" and situation not in ("no-network", "no-quorum"))
         d_goal = float(obs.d_g) if situation == "peer" and obs is not None else None
         return StepOutput(v=v, w=w, pose=pose, situation=situation, cov_trace=self.estimator.cov_trace,
                           d_goal=d_goal, stale=stale, target=target)
+
+    def _held_why(self, inp: StepInputs) -> str | None:
+        """``"no-network"`` (the session lost its routers), ``"no-quorum"`` (a leader whose side of a partition is not
+        a quorum: ``quorum``), or None: the step drives."""
+        if inp.held is not None:
+            return inp.held
+        if self.role == "leader" and not self.membership.quorum:
+            return "no-quorum"
+        return None
+
+    def _note_led(self, t_run: float, driving: bool) -> None:
+        """The run times this robot led (the leader's role, not held), joined where one step follows the next (the
+        report's ``two_leaders_s`` overlaps the robots' lists)."""
+        last = self.drove_led[-1] if self.drove_led else None
+        if driving and last is not None and t_run - last[1] <= 1.5 * self.sc.dt:
+            last[1] = t_run
+        elif driving:
+            self.drove_led.append([t_run, t_run])
 
     def estimate(self, inp: StepInputs) -> None:
         """Each odometry sample: its rates, then the motion over the interval since the previous one
@@ -207,6 +242,10 @@ class StepPipeline:
             elif s.t < self._t_odom:
                 self.counters.out_of_order += 1
                 continue
+            elif (bridge := self._bridge(s)) is not None:  # a gap the rates cannot cover: the base's own reckoning
+                ekf.update_odometry(*bridge)
+                ekf.predict(s.t - self._t_odom)
+                self.counters.gaps_bridged += 1
             else:
                 ekf.update_odometry(s.v, s.w)
                 if s.wz_imu is not None:
@@ -217,6 +256,22 @@ class StepPipeline:
                 self._fix(*s.fix)
         for fx in inp.fixes:
             self._fix(*fx)
+
+    def _bridge(self, s: OdomSample) -> tuple[float, float] | None:
+        """Over a gap longer than ``max_gap_s`` (no odometry came: the network was down, the agent stalled), the
+        rates (v, w) that carry the base's own dead-reckoned pose from the previous sample to this one (``pose``, its
+        odom frame); None where the gap is short, a pose is missing, or the move is one the robot cannot make
+        (its odom frame restarted)."""
+        gap = s.t - self._t_odom
+        a, b = self._odom_pose, s.pose
+        if gap <= self.cfg.max_gap_s or a is None or b is None:
+            return None
+        dx, dy = b[0] - a[0], b[1] - a[1]
+        forward = math.cos(a[2]) * dx + math.sin(a[2]) * dy
+        dyaw = math.atan2(math.sin(b[2] - a[2]), math.cos(b[2] - a[2]))
+        if math.hypot(dx, dy) > 1.5 * self.robot.v_max * gap + 0.05 or abs(dyaw) > 1.5 * self.robot.w_max * gap + 0.05:
+            return None
+        return forward / gap, dyaw / gap
 
     def _fix(self, x: float, y: float, std: float) -> None:
         if self.estimator.update_fix(x, y, std):

@@ -215,6 +215,10 @@ class Diag(_Msg):
     neighbour_waits_timed_out: int = 0  # lock-step steps that went on without an awaited neighbour state
     device_odom_late: int = 0  # lock-step steps that went on without all of the device's odometry samples of the step
     device_odom_strays: int = 0  # lock-step: device odometry samples that belonged to no step (dropped)
+    led: list[list[Finite]] = []  # [start, end] run times this agent led (the leader's role, not held)
+    link_outages: list[list[Finite | None]] = []  # real time: [start, end] run times its session had no router
+    held_steps: int = 0  # control steps held at zero: no router (its own loss) or a leader without a quorum
+    tokens_kept: int = 0  # peers' liveliness tokens that went away with our own link (the peers were kept)
     odom_stale: int = 0  # control steps commanded zero because the odometry was stale
     lidar_stale: int = 0  # control steps commanded zero because the lidar was stale (policies that need it)
     scans_from_driver: int = 0  # real time: scans the robot's own driver read (a Jackal's LaserScan)

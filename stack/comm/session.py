@@ -23,6 +23,11 @@ log = logging.getLogger(__name__)
 
 LOOPBACK = "127.0.0.1"
 
+RECONNECT = "{period_init_ms: 250, period_max_ms: 1000, period_increase_factor: 1.5}"
+"""A client's retry of its routers once it lost them (zenoh's ``connect/retry``): a restarted router is rejoined
+within about a second (zenoh's own default backs off to 4 s). A config file or an override that sets
+``connect/retry`` wins."""
+
 
 class EndpointError(ValueError):
     """An endpoint string that zenoh would not accept, or one off loopback without opt-in."""
@@ -107,11 +112,29 @@ def zenoh_config(cfg: SessionConfig) -> zenoh.Config:
         for ep in kept:
             check_endpoint(ep, cfg.allow_remote)
         conf.insert_json5(f"{what}/endpoints", json.dumps(ours or kept))
+    if cfg.mode == "client" and not _has(conf, "connect/retry") and not any(k.startswith("connect/retry") for k in cfg.overrides):
+        conf.insert_json5("connect/retry", RECONNECT)
     for key, value in cfg.overrides.items():
         conf.insert_json5(key, value)
     if "multicast/enabled" in str(cfg.overrides) and "true" in str(cfg.overrides):
         log.warning("zenoh: multicast scouting switched on by an override")
     return conf
+
+
+def _has(conf: zenoh.Config, key: str) -> bool:
+    try:
+        return json.loads(conf.get_json(key)) is not None
+    except (zenoh.ZError, ValueError):
+        return False
+
+
+def endpoint_list(text: str, allow_remote: bool = False) -> list[str]:
+    """``--connect A,B``: one or more router endpoints, comma-separated, each checked (:func:`check_endpoint`). A
+    client joins the first it reaches and, having lost it, whichever of them answers first."""
+    eps = [e.strip() for e in text.split(",") if e.strip()]
+    if not eps:
+        raise EndpointError(f"endpoint list {text!r}: no endpoint")
+    return [check_endpoint(e, allow_remote) for e in eps]
 
 
 def _file_endpoints(conf: zenoh.Config, what: str) -> list[str]:
@@ -151,7 +174,8 @@ def open_session(cfg: SessionConfig) -> zenoh.Session:
 
 
 def client(endpoint: str, **kw) -> SessionConfig:
-    return SessionConfig(mode="client", connect=[endpoint], **kw)
+    """A client of the router(s) at ``endpoint`` (one, or several comma-separated)."""
+    return SessionConfig(mode="client", connect=[e.strip() for e in endpoint.split(",") if e.strip()], **kw)
 
 
 def port_free(endpoint: str) -> bool:

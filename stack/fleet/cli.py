@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 from ..argtypes import fleet_name, nonnegative_float, nonnegative_int, positive_int
-from ..comm.session import ConfigFileError, EndpointError, SessionConfig, SessionError, check_endpoint, port_free, zenoh_config
+from ..comm.session import ConfigFileError, EndpointError, SessionConfig, SessionError, check_endpoint, endpoint_list, port_free, zenoh_config
 from ..policies import available as available_policies
 from ..scenario import FAULT_KINDS, ScenarioError, driver_names, load_scenario, parse_fault_at, policy_names, with_overrides
 from .orchestrator import EXIT_BAD_INPUT, FleetConfig, run_fleet, sigterm_as_interrupt
@@ -78,10 +78,13 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--can-log", action="store_true", help="log every CAN robot's bus to DIR/logs/can-<id>.asc (can.Logger)")
     r.add_argument("--device-fault", type=_fault_at, action="append", default=[], metavar="ID@T",
                    help="robot ID's simulated device fails at sim time T (CAN: heartbeats stop; MAVLink: HOLD; Jackal: odometry stops)")
-    r.add_argument("--connect", metavar="EP", help="join this (site) router instead of starting one")
+    r.add_argument("--connect", metavar="EP", help="join this (site) router instead of starting one; several, comma-separated: any of them")
     r.add_argument("--external-agents", action="store_true",
                    help="start no agents: they run elsewhere (stack-agent on each robot); wait for their tokens")
     r.add_argument("--wait-agents", type=float, default=60.0, metavar="S", help="how long to wait for every agent (default 60 s)")
+    r.add_argument("--rejoin-wait", type=float, default=10.0, metavar="S",
+                   help="real time: how long a robot out of contact (its network, or the world's) may take to come back "
+                        "before it is gone (default 10 s)")
     r.add_argument("--lockstep-timeout", type=float, default=2.0, metavar="S",
                    help="lock-step: how long (wall) the world waits for an agent's command before it goes on without it "
                         "(a late step) and stops waiting for that agent (default 2 s)")
@@ -168,11 +171,13 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
     if a.connect:
         if a.listen:
             raise ScenarioError("--connect and --listen: give one (join a router, or start ours on an endpoint)")
-        check_endpoint(a.connect, a.allow_remote)
+        endpoint_list(a.connect, a.allow_remote)
     if a.external_agents and faults:
         raise ScenarioError("--external-agents: faults (--kill/--freeze/--restart) need agents this command started")
     if a.wait_agents <= 0:
         raise ScenarioError(f"--wait-agents: must be > 0, got {a.wait_agents:g}")
+    if a.rejoin_wait < 0:
+        raise ScenarioError(f"--rejoin-wait: must be >= 0, got {a.rejoin_wait:g}")
     if not a.lockstep_timeout > 0:
         raise ScenarioError(f"--lockstep-timeout: must be > 0, got {a.lockstep_timeout:g}")
     if a.zenoh_config is not None and not Path(a.zenoh_config).is_file():
@@ -197,7 +202,7 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
     return FleetConfig(scenario=sc, out=out, realtime=a.realtime, gui=a.gui, listen=a.listen, faults=faults,
                        device_faults=a.device_fault, can_log=a.can_log,
                        progress=not a.no_progress, plots=not a.no_plots, connect=a.connect,
-                       external_agents=a.external_agents, wait_agents_s=a.wait_agents,
+                       external_agents=a.external_agents, wait_agents_s=a.wait_agents, rejoin_wait_s=a.rejoin_wait,
                        lockstep_timeout_s=a.lockstep_timeout, fleet=a.fleet,
                        zenoh_config=a.zenoh_config, allow_remote=a.allow_remote, record=not a.no_record, viz=a.viz)
 

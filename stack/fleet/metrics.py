@@ -340,3 +340,31 @@ def device_faults(world: dict, diags: dict, log: TruthLog) -> list:
                     "driver_fault": (d.fault or None) if d is not None else None,
                     "stopped_s": None if stopped is None else round(stopped - t0, 3)})
     return out
+
+
+def two_leaders_s(diags: dict, dt: float) -> float:
+    """Run time during which two or more robots led at once (each agent's ``led`` intervals, a step long each)."""
+    edges = sorted((t, d) for diag in diags.values() for a, b in getattr(diag, "led", ()) for t, d in
+                   ((a, 1), (b + dt, -1)))
+    total, depth, since = 0.0, 0, 0.0
+    for t, d in edges:
+        if depth >= 2:
+            total += t - since
+        depth += d
+        since = t
+    return total
+
+
+def network(world: dict, diags: dict, dt: float) -> dict:
+    """Outages (the world's own, robots out of contact: start, end, robots), each agent's own router outages and
+    held steps, who led when, and how long two led at once (``stack.agents.quorum``)."""
+    return {
+        "outages": world.get("outages", []),
+        "agent_outages": {str(r): [[rounded(a), rounded(b)] for a, b in d.link_outages]
+                          for r, d in sorted(diags.items()) if getattr(d, "link_outages", None)},
+        "held_steps": {str(r): d.held_steps for r, d in sorted(diags.items()) if getattr(d, "held_steps", 0)},
+        "tokens_kept": sum(getattr(d, "tokens_kept", 0) for d in diags.values()),
+        "led": {str(r): [[rounded(a), rounded(b)] for a, b in d.led] for r, d in sorted(diags.items())
+                if getattr(d, "led", None)},
+        "two_leaders_s": rounded(two_leaders_s(diags, dt)),
+    }

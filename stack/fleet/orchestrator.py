@@ -74,6 +74,8 @@ class FleetConfig:
     """The agents run elsewhere (their own machines): start none, wait for their liveliness tokens."""
     wait_agents_s: float = 60.0
     """How long to wait for every expected agent's token."""
+    rejoin_wait_s: float = 10.0
+    """Real time: how long a robot out of contact may take to come back before the world calls it gone."""
     lockstep_timeout_s: float = 2.0
     """Lock-step: how long (wall) the world waits for an agent's command before it takes the step without it."""
     zenoh_config: str | None = None
@@ -176,7 +178,7 @@ class Fleet:
         self.resolved.write_text(self.sc.to_yaml())
         self._start_router()
         try:
-            self.session = open_session(SessionConfig(mode="client", connect=[self.endpoint],
+            self.session = open_session(SessionConfig(mode="client", connect=self.endpoint.split(","),
                                                       config_file=self.cfg.zenoh_config,
                                                       allow_remote=self.cfg.allow_remote))
         except SessionError as e:
@@ -227,6 +229,7 @@ class Fleet:
         cfg = self.cfg
         argv = [sys.executable, "-m", "stack.sim_bridge", "--scenario", str(self.resolved), "--connect", self.endpoint,
                 "--fleet", self.fleet, "--out", str(self.out), "--wait-agents", f"{cfg.wait_agents_s:g}",
+                "--rejoin-wait", f"{cfg.rejoin_wait_s:g}",
                 "--lockstep-timeout", f"{cfg.lockstep_timeout_s:g}",
                 *self._remote, *self._zconf]
         if cfg.realtime:

@@ -247,7 +247,7 @@ def parser():
 def _session(a):
     from ..comm.session import SessionConfig, SessionError, open_session
 
-    cfg = SessionConfig(connect=[a.connect], config_file=a.zenoh_config, allow_remote=a.allow_remote)
+    cfg = SessionConfig(connect=a.connect.split(","), config_file=a.zenoh_config, allow_remote=a.allow_remote)
     deadline = time.monotonic() + a.wait
     while True:
         try:

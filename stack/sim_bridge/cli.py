@@ -8,7 +8,7 @@ import signal
 import sys
 from pathlib import Path
 
-from ..comm.session import ConfigFileError, EndpointError, SessionConfig, SessionError, check_endpoint, open_session
+from ..comm.session import ConfigFileError, EndpointError, SessionConfig, SessionError, endpoint_list, open_session
 from ..scenario import FAULT_KINDS, ScenarioError, load_scenario, parse_fault_at
 from .devices import DeviceError
 from .server import WorldConfig, WorldServer
@@ -19,7 +19,7 @@ log = logging.getLogger("stack.world")
 def main(cfg: WorldConfig) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: cfg.stop.set())
-    with open_session(SessionConfig(mode="client", connect=[cfg.connect], config_file=cfg.zenoh_config,
+    with open_session(SessionConfig(mode="client", connect=cfg.connect.split(","), config_file=cfg.zenoh_config,
                                     allow_remote=cfg.allow_remote)) as session:
         server = WorldServer(cfg, session)
         try:
@@ -34,13 +34,15 @@ def main(cfg: WorldConfig) -> int:
 def cli(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="stack-world", description="The pybullet world of a simulated fleet, on Zenoh.")
     ap.add_argument("--scenario", required=True)
-    ap.add_argument("--connect", default="tcp/127.0.0.1:7447")
+    ap.add_argument("--connect", default="tcp/127.0.0.1:7447", help="router endpoint(s), comma-separated")
     ap.add_argument("--fleet", default="default")
     ap.add_argument("--out", type=Path)
     ap.add_argument("--realtime", action="store_true")
     ap.add_argument("--gui", action="store_true")
     ap.add_argument("--duration", type=float)
     ap.add_argument("--wait-agents", type=float, default=60.0)
+    ap.add_argument("--rejoin-wait", type=float, default=10.0, metavar="S",
+                    help="real time: how long a robot out of contact may take to come back before it is gone")
     ap.add_argument("--lockstep-timeout", type=float, default=2.0)
     ap.add_argument("--no-stop-early", action="store_true", help="run the whole duration even when the task is done")
     ap.add_argument("--log-level", default="WARNING")
@@ -55,12 +57,12 @@ def cli(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=a.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         sc = load_scenario(a.scenario)
-        check_endpoint(a.connect, a.allow_remote)
+        endpoint_list(a.connect, a.allow_remote)
     except (ScenarioError, EndpointError) as e:
         print(f"stack-world: {e}", file=sys.stderr)
         return 2
     cfg = WorldConfig(scenario=sc, connect=a.connect, fleet=a.fleet, out=a.out, realtime=a.realtime, gui=a.gui,
-                      wait_agents_s=a.wait_agents, lockstep_timeout_s=a.lockstep_timeout, duration=a.duration,
+                      wait_agents_s=a.wait_agents, rejoin_wait_s=a.rejoin_wait, lockstep_timeout_s=a.lockstep_timeout, duration=a.duration,
                       stop_early=not a.no_stop_early, zenoh_config=a.zenoh_config, allow_remote=a.allow_remote,
                       device_faults=a.device_fault, faults=[(kind, rid, t) for kind in FAULT_KINDS for rid, t in getattr(a, kind)])
     try:

@@ -31,6 +31,7 @@ import numpy as np
 import zenoh
 
 from ..comm import Keys, MessageError, decode, encode
+from ..comm.link import GoneJudge, LinkWatch
 from ..comm.lockstep import CommandBarrier, DeviceWires, StateRelay
 from ..comm.messages import Answer, Clock, CmdVel, FaultAck, FaultRequest, Fix, Imu, Odom, Scan, Truth, WorldStatus
 from ..scenario import Scenario, fix_due, slot_position
@@ -69,6 +70,10 @@ class WorldConfig:
     """pybullet GUI instead of DIRECT."""
     wait_agents_s: float = 60.0
     """How long to wait for every robot's liveliness token before giving up."""
+    rejoin_wait_s: float = 10.0
+    """Real time: how long a robot whose liveliness token went away (its process, or its network) may take to come
+    back before it is gone; meanwhile it is out of contact (an event with start and end), its body stands where its
+    device's watchdog stopped it. A world that lost its own router(s) waits for them and counts nobody gone."""
     lockstep_timeout_s: float = 2.0
     """An agent that does not answer a step within this (wall) is not waited for until it answers again."""
     duration: float | None = None
@@ -121,6 +126,11 @@ class WorldServer:
         self.lidars: dict[int, HostedLidar] = {}  # robots whose lidar source is a simulated sensor
         self._scan_base: dict[int, int] = {}  # lidar -> scans_sent when lock-step began
         self._sim_odom_origin = {r.id: sim_odom_origin(r) for r in self.sc.robots}
+        self.link = LinkWatch(session)  # real time: our own link to the router(s), and the tokens judged by it
+        self.judge = GoneJudge(self.link)
+        self.absent: dict[int, float] = {}  # real time: robot -> sim time its token went (out of contact)
+        self.outages: list[dict] = []  # real time: the world's own outages and robots out of contact
+        self._stepping = False  # the loop runs (after it, a token that goes is an agent that stopped)
 
     # --- callbacks -------------------------------------------------------------------
     def _decode_answer(self, sample: zenoh.Sample, kind, hosted: bool):
@@ -162,6 +172,16 @@ class WorldServer:
         rid = Keys.id_of(str(sample.key_expr))
         if rid is None or rid not in self.world.index:
             return
+        if self.cfg.realtime and self.k > 0 and self._stepping:  # judged by our link (_contact): an outage is not a death
+            if sample.kind == zenoh.SampleKind.DELETE:
+                self.judge.deleted(rid)
+            else:
+                self.judge.returned(rid)
+                with self._cv:
+                    self._back_in_contact(rid)
+            return
+        if sample.kind != zenoh.SampleKind.DELETE:
+            self.judge.returned(rid)
         with self._cv:
             if sample.kind == zenoh.SampleKind.DELETE:
                 if rid in self.alive:
@@ -175,6 +195,47 @@ class WorldServer:
                 self.alive.add(rid)
                 self.dead.discard(rid)
             self._cv.notify_all()
+
+    def _back_in_contact(self, rid: int) -> None:
+        """Real time (caller holds the lock): robot ``rid``'s token is here again."""
+        if rid in self.absent:
+            del self.absent[rid]
+            for o in self.outages:
+                if o["end"] is None and o["robots"] == [rid]:
+                    o["end"] = self.t
+            log.warning("world: t=%.1f s: robot %d back in contact", self.t, rid)
+        if rid not in self.alive:
+            self.events.append({"t": self.t, "robot": rid, "event": "joined"})
+        self.alive.add(rid)
+        self.dead.discard(rid)
+        self._cv.notify_all()
+
+    def _contact(self) -> None:
+        """Real time, each step: the world's own link (an outage: everyone affected, nobody gone), robots whose
+        token went away while the link was up (out of contact), and those out of contact too long (gone)."""
+        change = self.link.poll()
+        if change == "lost":
+            log.warning("world: t=%.1f s: lost the router(s): stepping on, waiting for the link", self.t)
+            self.outages.append({"cause": "the world lost its router(s)", "start": self.t, "end": None,
+                                 "robots": list(self.ids)})
+        elif change == "back":
+            log.warning("world: t=%.1f s: router link back", self.t)
+            for o in self.outages:
+                if o["end"] is None and o["cause"].startswith("the world"):
+                    o["end"] = self.t
+        with self._cv:
+            for rid in self.judge.confirmed():
+                if rid in self.alive and rid not in self.absent:
+                    self.absent[rid] = self.t
+                    log.warning("world: t=%.1f s: robot %d out of contact; gone if not back within %.0f s", self.t,
+                                rid, self.cfg.rejoin_wait_s)
+                    self.outages.append({"cause": "robot out of contact", "start": self.t, "end": None, "robots": [rid]})
+            for rid, t0 in list(self.absent.items()):
+                if self.t - t0 >= self.cfg.rejoin_wait_s:
+                    del self.absent[rid]
+                    self.events.append({"t": self.t, "robot": rid, "event": "left"})
+                    self.alive.discard(rid)
+                    self.dead.add(rid)
 
     def _on_ack(self, sample: zenoh.Sample) -> None:
         try:
@@ -313,8 +374,11 @@ class WorldServer:
         answered: list[int] = []
         arrived_at: float | None = None
         self._begin_devices()
+        self._stepping = True
         while True:
             self.t = self.k * self.sc.dt
+            if self.cfg.realtime:
+                self._contact()
             self._faults_due(fault_pub)
             with self._cv:
                 alive_now, dead_now = set(self.alive), sorted(self.dead)
@@ -329,6 +393,7 @@ class WorldServer:
             log_rows["cmd_w"].append(np.array([commands[r][1] for r in self.ids]))
             self._advance(commands)
             self.k += 1
+        self._stepping = False
         return self._result(end_reason, arrived_at, time.monotonic() - wall0, log_rows)
 
     def _begin_devices(self) -> None:
@@ -480,7 +545,7 @@ class WorldServer:
         result = {"end_reason": end_reason, "steps": self.k, "sim_time_s": self.t, "wall_time_s": wall,
                   "steps_per_s": self.k / wall if wall > 0 else None, "late_steps": self.late_steps,
                   "states_late": self.relay.late, "states_dropped": self.relay.dropped,
-                  "malformed": self.malformed, "events": self.events,
+                  "malformed": self.malformed, "events": self.events, "outages": self.outages,
                   "last_cmd": {str(r): {"v": c[0], "w": c[1], "t": c[2], "step": c[3]} for r, c in self.last_cmd.items()},
                   "leader_arrival_s": arrived_at}
         if self.cfg.out is not None:
