@@ -152,7 +152,8 @@ class Fleet:
         self.agents_scenario = self.resolved
         self.router: Proc | None = None
         self.procs: dict[str, Proc] = {}  # "world", "agent-<id>": the ones running now (or that ended)
-        self.retired: list[Proc] = []  # agents replaced by a restart
+        self.retired: list[Proc] = []  # agents replaced by a restart (and routers that died under the run)
+        self.router_restarts: list[dict] = []  # our own router died under the run and was started again
         self.faults: list[dict] = []
         self.crashed: list[dict] = []
         self.session: zenoh.Session | None = None
@@ -213,13 +214,13 @@ class Fleet:
         self.crashed.append({"process": process, "exit_code": exit_code, "sim_time_s": 0.0, "log_tail": why})
         raise _Abort
 
-    def _start_router(self) -> None:
+    def _start_router(self, log_name: str = "router.log") -> None:
         if self.cfg.connect is not None:
             return
         argv = [sys.executable, "-m", "stack.comm.router", "--listen", self.endpoint, *self._remote]
         if self.cfg.zenoh_config:
             argv += ["--config", self.cfg.zenoh_config]
-        self.router = self.spawn("router", argv, self.out / "logs" / "router.log", self.env)
+        self.router = self.spawn("router", argv, self.out / "logs" / log_name, self.env)
         try:
             wait_port(self.endpoint, process=self.router)
         except TimeoutError as e:
@@ -291,6 +292,7 @@ class Fleet:
             done = [rid for rid in req.ids if self.do_fault(req, rid)]
             self.ack_pub.put(encode(FaultAck(step=req.step, kind=req.kind, done=done)))
         self.note_crashes(t, status)
+        self._router_watch(t)
         if status == "done" or self.procs["world"].poll() is not None:
             return True
         if time.monotonic() - self.wall0 > self.wall_limit:
@@ -298,6 +300,17 @@ class Fleet:
                                  "log_tail": f"no end after {self.wall_limit:.0f} s wall time"})
             return True
         return False
+
+    def _router_watch(self, t: float) -> None:
+        """Our own router died under the run (nothing of ours stops it before the end): start it again on the
+        same endpoint, as a site's service manager would; the sessions rejoin it (``docs/network-faults.md``)."""
+        r = self.router
+        if r is None or r.asked_to_stop or r.poll() is None:
+            return
+        log.warning("fleet: t=%.1f s: the router exited (code %s): starting it again on %s", t, r.poll(), self.endpoint)
+        self.router_restarts.append({"sim_time_s": round(t, 3), "exit_code": r.poll()})
+        self.retired.append(r)
+        self._start_router(f"router.restart{len(self.router_restarts)}.log")
 
     def do_fault(self, req: FaultRequest, rid: int) -> bool:
         """Do one fault the world asked for (one we were told to inject); whether it was done."""
@@ -399,7 +412,7 @@ class Fleet:
             self.stop()
         report = build_report(self.sc, self.out, diags=self.diags, estimates=self.estimates, faults=self.faults,
                               crashed=self.crashed, wall_time_s=time.monotonic() - self.wall0,
-                              realtime=self.cfg.realtime, plots=self.cfg.plots)
+                              realtime=self.cfg.realtime, plots=self.cfg.plots, router_restarts=self.router_restarts)
         self._replay()
         code = EXIT_CRASH if self.crashed else (EXIT_OK if report["success"] else EXIT_FAILED)
         return code, report

@@ -17,7 +17,7 @@ from .truth import Targets, TruthLog, targets
 
 
 def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, faults: list, crashed: list,
-                 wall_time_s: float, realtime: bool, plots: bool = True) -> dict:
+                 wall_time_s: float, realtime: bool, plots: bool = True, router_restarts: list | None = None) -> dict:
     """The report of the run in ``out`` (its ``truth.npz`` and ``world.json``), written to ``out/report.json``."""
     world_path = out / "world.json"
     world = json.loads(world_path.read_text()) if world_path.exists() else {}
@@ -29,6 +29,7 @@ def build_report(sc: Scenario, out: Path, *, diags: dict, estimates: dict, fault
     tg = targets(sc, log, m.frozen_mask(faults, log.t, log.ids))
     report = report_of(sc, log, tg, world, diags=diags, estimates=estimates, faults=faults, crashed=crashed,
                        wall_time_s=wall_time_s, realtime=realtime)
+    report["network"]["router_restarts"] = list(router_restarts or [])  # the fleet's own router, started again
     (out / "report.json").write_text(json.dumps(report, indent=2))
     if plots:
         _plot(sc, log, tg, out)
