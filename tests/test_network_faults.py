@@ -1,4 +1,5 @@
-"""The network failing under a real-time fleet: a router restart, a flapping router, one of two routers dying.
+"""The network failing under a real-time fleet: a router restart, one of two routers dying, a partition, the
+fleet's own router flapping.
 
 Real processes throughout: a ``stack-router`` the test owns (killed with SIGKILL, started again on the same
 endpoint), ``stack-fleet run --realtime --connect`` joining it, and the fleet's own agents and world as child
@@ -19,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
-from conftest import ROOT, scenario_dict, write_scenario
+from conftest import ROOT, run_cli, scenario_dict, write_scenario
 
 from stack.agents.quorum import Membership, is_quorum
 from stack.comm import Keys
@@ -144,7 +145,7 @@ def short_diamond(duration: float = 30.0) -> dict:
     d = scenario_dict(duration=duration)
     d["success"] = dict(d["success"], max_time=duration)
     d["formation"] = dict(d["formation"], goal=[6.0, 0.0])
-    d["robot"] = dict(d["robot"], cmd_timeout=0.5)
+    d["robot"] = dict(d["robot"], cmd_timeout=0.5, pid={"v_cruise": 0.8})  # a shorter run: the leader at 0.8 m/s
     return d
 
 
@@ -242,6 +243,20 @@ def test_a_token_lost_with_our_own_link_is_not_a_peer_gone(tmp_path: Path):
             assert gone == [7]
     finally:
         router.close()
+
+
+def test_bad_router_lists_and_waits_are_one_line_errors(tmp_path: Path):
+    sc = write_scenario(tmp_path / "d.yaml", short_diamond())
+    cases = [(["stack-fleet", "run", str(sc), "--connect", "tcp/127.0.0.1:7447,udp/nowhere"], "'udp/nowhere'"),
+             (["stack-fleet", "run", str(sc), "--connect", ","], "no endpoint"),
+             (["stack-fleet", "run", str(sc), "--rejoin-wait", "-1"], "--rejoin-wait: must be >= 0"),
+             (["stack-agent", "--id", "1", "--scenario", str(sc), "--connect", "tcp/127.0.0.1:7447,tcp/10.1.2.3:7447"],
+              "not a loopback address"),
+             (["stack-world", "--scenario", str(sc), "--rejoin-wait", "-2"], "--rejoin-wait: must be >= 0")]
+    for argv, words in cases:
+        p = run_cli(argv, timeout=60)
+        lines = [x for x in p.stderr.strip().splitlines() if not x.startswith("pybullet build time")]  # its banner
+        assert p.returncode == 2 and words in p.stderr and len(lines) == 1, (argv, p.stderr)
 
 
 # --- fleets ------------------------------------------------------------------------------------------------

@@ -58,6 +58,8 @@ def cli(argv: list[str] | None = None) -> int:
     try:
         sc = load_scenario(a.scenario)
         endpoint_list(a.connect, a.allow_remote)
+        if a.rejoin_wait < 0:
+            raise ScenarioError(f"--rejoin-wait: must be >= 0, got {a.rejoin_wait:g}")
     except (ScenarioError, EndpointError) as e:
         print(f"stack-world: {e}", file=sys.stderr)
         return 2

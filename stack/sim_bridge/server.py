@@ -38,6 +38,7 @@ from ..scenario import Scenario, fix_due, slot_position
 from .device_streams import relative_pose
 from .devices import Body, HostedDevice, hosted, make_device
 from .lidar_devices import HostedLidar, make_lidar_device
+from .truthlog import TruthRows
 from .world import World
 
 log = logging.getLogger("stack.world")
@@ -369,7 +370,7 @@ class WorldServer:
 
     def _loop(self, pubs, clock_pub, truth_pub, fault_pub) -> dict:
         n_steps = int(round((self.cfg.duration or self.sc.duration) / self.sc.dt))
-        log_rows: dict[str, list] = {k: [] for k in ("t", "x", "y", "yaw", "v", "w", "alive", "cmd_v", "cmd_w")}
+        log_rows = TruthRows(self.cfg.out)
         wall0 = time.monotonic()
         answered: list[int] = []
         arrived_at: float | None = None
@@ -392,6 +393,7 @@ class WorldServer:
             log_rows["cmd_v"].append(np.array([commands[r][0] for r in self.ids]))
             log_rows["cmd_w"].append(np.array([commands[r][1] for r in self.ids]))
             self._advance(commands)
+            log_rows.step_done()
             self.k += 1
         self._stepping = False
         return self._result(end_reason, arrived_at, time.monotonic() - wall0, log_rows)
@@ -420,7 +422,7 @@ class WorldServer:
                 log.warning("world: t=%.1f s: robot %d's device fails: %s", self.t, rid, what)
                 self.events.append({"t": self.t, "robot": rid, "event": "device fault", "what": what})
 
-    def _log_truth(self, log_rows: dict[str, list], alive_now: set[int]) -> None:
+    def _log_truth(self, log_rows: TruthRows, alive_now: set[int]) -> None:
         w = self.world
         log_rows["t"].append(self.t)
         for key, arr in (("x", w.x), ("y", w.y), ("yaw", w.yaw), ("v", w.v), ("w", w.w)):
@@ -539,7 +541,7 @@ class WorldServer:
         for rid, lid in self.lidars.items():  # each sensor's scans of the step, at their own times
             lid.report(self.t, self.t + self.sc.dt, before[rid], self._body(rid))
 
-    def _result(self, end_reason: str, arrived_at: float | None, wall: float, log_rows: dict[str, list]) -> dict:
+    def _result(self, end_reason: str, arrived_at: float | None, wall: float, log_rows: TruthRows) -> dict:
         log_rows["cmd_v"].append(np.zeros(len(self.ids)))
         log_rows["cmd_w"].append(np.zeros(len(self.ids)))
         result = {"end_reason": end_reason, "steps": self.k, "sim_time_s": self.t, "wall_time_s": wall,
@@ -550,8 +552,7 @@ class WorldServer:
                   "leader_arrival_s": arrived_at}
         if self.cfg.out is not None:
             self.cfg.out.mkdir(parents=True, exist_ok=True)
-            np.savez_compressed(self.cfg.out / "truth.npz", ids=np.array(self.ids),
-                                **{k: np.array(v) for k, v in log_rows.items()})
+            log_rows.save(self.cfg.out / "truth.npz", ids=np.array(self.ids))
         return result
 
     def linger(self, timeout_s: float) -> None:
