@@ -145,7 +145,7 @@ def short_diamond(duration: float = 30.0) -> dict:
     d = scenario_dict(duration=duration)
     d["success"] = dict(d["success"], max_time=duration)
     d["formation"] = dict(d["formation"], goal=[6.0, 0.0])
-    d["robot"] = dict(d["robot"], cmd_timeout=0.5, pid={"v_cruise": 0.8})  # a shorter run: the leader at 0.8 m/s
+    d["robot"] = dict(d["robot"], cmd_timeout=0.5)
     return d
 
 
