@@ -21,7 +21,6 @@ import argparse
 import json
 import os
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -34,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from fleet_bench import fleet_scenario  # noqa: E402
 
 from stack.fleet.orchestrator import Fleet, FleetConfig  # noqa: E402
-from stack.fleet.procmem import memory_mb  # noqa: E402
+from stack.fleet.procmem import Sampler, memory_mb  # noqa: E402
 from stack.fleet.procs import Proc  # noqa: E402
 from stack.scenario import parse_scenario  # noqa: E402
 
@@ -55,32 +54,17 @@ def sample(pid: int) -> dict | None:
     return {"rss_mb": round(m["rss"], 2), "fds": fds, "threads": threads}
 
 
-class SeriesSampler:
-    """``spawn`` for a Fleet that keeps every process and samples them all every ``every_s`` (a thread)."""
+class SeriesSampler(Sampler):
+    """``procmem.Sampler`` (a Fleet's ``spawn`` that keeps every process) keeping each process's samples in time
+    (RSS, file descriptors, threads) instead of its peaks."""
 
     def __init__(self, every_s: float):
-        self.every_s = every_s
-        self.procs: dict[str, Proc] = {}
+        super().__init__(Proc, period_s=every_s)
         self.series: dict[str, list[dict]] = {}
-        self._stop = threading.Event()
         self._t0 = time.monotonic()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    def __call__(self, name, argv, log_path, env) -> Proc:
-        proc = Proc(name, argv, log_path, env)
-        self.procs[name] = proc
-        return proc
-
-    def __enter__(self) -> "SeriesSampler":
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._stop.set()
-        self._thread.join()
 
     def _run(self) -> None:
-        while not self._stop.wait(self.every_s):
+        while not self._stop.wait(self.period_s):
             t = round(time.monotonic() - self._t0, 2)
             for name, proc in list(self.procs.items()):
                 got = sample(proc.p.pid)
