@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-$(shell cksum pyproject.toml | cut -d' ' -f1)
 
-.PHONY: demo test bench core-check clean screenshots
+.PHONY: demo test bench core-check clean screenshots golden
 
 $(STAMP): pyproject.toml
 	@# the viewer tests drive Lichtblick in Debian's chromium (Playwright from PyPI, no browser download)
@@ -22,6 +22,10 @@ test: $(STAMP)
 # the README's viewer pictures, taken by the viewer tests from the real viewer (Lichtblick in chromium)
 screenshots: $(STAMP)
 	STACK_SHOTS=docs/figures $(PY) -m pytest -q tests/test_viewer.py
+
+# the golden step logs (tests/golden/, tests/test_replay.py) recorded again: after a change meant to alter decisions
+golden: $(STAMP)
+	$(PY) tests/golden_logs.py
 
 bench: $(STAMP)
 	$(PY) -m pip install -q -e '.[test,bench]'

@@ -93,7 +93,7 @@ def write_scenario(path: Path, data: dict) -> Path:
 def run_cli(args: list[str], timeout: float = 180, **kw) -> subprocess.CompletedProcess:
     """Run a console tool as a real process (``python -m``, so the test does not depend on PATH)."""
     mod = {"stack-fleet": "stack.fleet", "stack-agent": "stack.agents", "stack-world": "stack.sim_bridge",
-           "stack-router": "stack.comm.router"}[args[0]]
+           "stack-router": "stack.comm.router", "stack-replay": "stack.replay.cli"}[args[0]]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     for name in kw.pop("unset", ()):
         env.pop(name, None)

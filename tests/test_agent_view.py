@@ -28,8 +28,9 @@ ENV = dict(os.environ, PYTHONUNBUFFERED="1")
 SCHEMAS = {"/tf_estimate": "foxglove.FrameTransforms", "/scene/obstacles": "foxglove.SceneUpdate", "/events": "foxglove.Log"}
 ROBOT_SCHEMAS = {"estimate": "foxglove.PoseInFrame", "scan": "foxglove.LaserScan", "scene": "foxglove.SceneUpdate",
                  "links": "foxglove.SceneUpdate", "cmd_vel": "stack.CmdVel", "state": "stack.State", "diag": "stack.Diag",
-                 "covariance": "stack.Covariance", "decision": "stack.Decision", "heard": "stack.Heard"}
-PER_STEP = ("estimate", "scan", "scene", "links", "cmd_vel", "state", "covariance", "decision", "heard")
+                 "covariance": "stack.Covariance", "decision": "stack.Decision", "heard": "stack.Heard",
+                 "step_io": "stack.StepRecord"}
+PER_STEP = ("estimate", "scan", "scene", "links", "cmd_vel", "state", "covariance", "decision", "heard", "step_io")
 
 
 def _want(rid: int) -> dict[str, str]:
@@ -164,6 +165,10 @@ def test_agents_record_and_serve_their_own_view_in_a_lockstep_fleet(tmp_path):
     assert set(seen) == set(_want(2)), sorted(set(_want(2)) - set(seen))
     assert seen["/robot_2/state"] == steps
     _clean_in_lichtblick(tmp_path, "view-1.mcap", _want(1), msgs["/robot_1/state"][-1][0])
+    # issue 40: the robot's own recording replays to the bit (stack-replay FILE: one robot, no --robot-id)
+    p = run_cli(["stack-replay", str(tmp_path / "view-1.mcap")])
+    assert p.returncode == 0 and f"robot 1: {steps} steps replayed: every output reproduced to the bit" in p.stdout, \
+        p.stdout + p.stderr
 
 
 def _clean_in_lichtblick(folder: Path, name: str, topics, at_ns: int) -> None:
@@ -204,3 +209,6 @@ def test_a_realtime_agent_records_on_wall_time_and_stops_after_its_steps(tmp_pat
     times = [ns for ns, _ in msgs["/robot_3/state"]]
     assert t0 < times[0] < times[-1] < t1
     assert 0.05 < np.median(np.diff(times)) / 1e9 < 0.2  # its own period, dt = 0.1 s
+    p = run_cli(["stack-replay", str(tmp_path / "v.mcap")])  # a real-time agent's own log replays to the bit
+    assert p.returncode == 0 and "robot 3: 20 steps replayed: every output reproduced to the bit" in p.stdout, \
+        p.stdout + p.stderr

@@ -25,7 +25,7 @@ import logging
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import zenoh
 
@@ -41,11 +41,13 @@ from .lidar import scan_from_driver, scan_from_lidar
 from .ros_graph import RosGraphLink, open_ros_graph
 from .guard import GuardConfig
 from .step import OdomSample, StepConfig, StepInputs, StepOutput, StepPipeline
+from .steplog import WHAT as STEP_IO, StepLogger
 from .timing import LatencyHistogram
 
 log = logging.getLogger("stack.agent")
 
 DEVICE_ODOM_WAIT_S = 2.0  # lock-step: how long (wall) to wait for a device sample the world says it sent (a lost one)
+STEP_LOG_BUFFER = 64 * 1024  # bytes of step records held before a write (a killed agent loses at most this)
 ODOM_QUEUE = 1000  # odometry samples kept between two control steps (a stalled loop drops the oldest)
 
 
@@ -86,6 +88,14 @@ class AgentConfig:
     """Record this robot's own view to this MCAP file (``stack.agents.view``; the ``viz`` extra)."""
     viz: str | None = None
     """Serve this robot's own view live (Foxglove WebSocket) on this ``tcp/HOST:PORT``."""
+    log_steps: bool = False
+    """Publish every step's inputs and outputs (``steplog``, the neighbours' states by name) on
+    ``stack/<fleet>/<id>/step_io``, for a recorder elsewhere (``python -m stack.fleet.record``); ``record`` keeps
+    them in the robot's own file in any case."""
+    step_log: str | None = None
+    """Append every step's record (as ``log_steps`` publishes it) to this file, one JSON line a step: how a
+    recording ``stack-fleet run`` gets its agents' steps into ``run.mcap`` (its recorder reads the files at the
+    end; over Zenoh, 32 robots' records cost the lock-step fleet 25-45 % of its speed: docs/replay.md)."""
     stop: threading.Event = field(default_factory=threading.Event)
     """Set to end the loop (signal handlers set it)."""
 
@@ -148,6 +158,10 @@ class Agent:
         self._lidar_taken = (0, None)  # lock-step: (lidar_n, sim time) when a new scan was last taken
         self.lidar_late = 0  # lock-step steps that went on without all of the lidar's scans
         self.view = None  # this robot's own recording / live view (``view.AgentView``), when asked for
+        self.steplog: StepLogger | None = None  # every step's inputs and outputs for our own recording (``steplog``)
+        self.steplog_fleet: StepLogger | None = None  # ... for the fleet's (published / a file): states by name
+        self._step_pub = None
+        self._step_file = None
         # real time: our session's link to its router(s), and the peers' tokens judged by it (``stack.comm.link``)
         self.link = LinkWatch(session, clock=self._now)
         self.judge = GoneJudge(self.link)
@@ -328,11 +342,19 @@ class Agent:
             from .view import start_view
 
             self.view = start_view(self.cfg)
+        if self.cfg.record is not None:
+            self.steplog = StepLogger(self.pipeline, self.cfg.lockstep, self.driver.name)
+        if self.cfg.log_steps or self.cfg.step_log:
+            self.steplog_fleet = StepLogger(self.pipeline, self.cfg.lockstep, self.driver.name, refs=True)
+        if self.cfg.step_log:
+            self._step_file = open(self.cfg.step_log, "ab", buffering=STEP_LOG_BUFFER)  # noqa: SIM115 - closed below
         try:
             return self._run()
         finally:
             if self.view is not None:
                 self.view.stop()
+            if self._step_file is not None:
+                self._step_file.close()
 
     def _run(self) -> int:
         k = self.keys
@@ -341,6 +363,8 @@ class Agent:
         self._state_pub = s.declare_publisher(k.robot(self.id, "state"), congestion_control=block)
         self._diag_pub = s.declare_publisher(k.robot(self.id, "diag"), congestion_control=block)
         self._answer_pub = s.declare_publisher(k.robot(self.id, "answer"), congestion_control=block)
+        if self.cfg.log_steps:
+            self._step_pub = s.declare_publisher(k.robot(self.id, STEP_IO), congestion_control=block)
         subs = [
             s.declare_subscriber(k.robot(self.id, "fix"), self._on_fix),
             s.declare_subscriber(k.world("clock"), self._on_clock),
@@ -392,6 +416,8 @@ class Agent:
                 continue
             if self.cfg.lockstep:
                 t_tick = time.perf_counter()
+            if self.ros_graph is not None and (goal := self.ros_graph.take_goal(self.pipeline)) is not None:
+                inp = replace(inp, goal=goal)  # in the step's inputs: its log holds it
             self._send(inp, self.pipeline.step(inp))
             self.compute.add((time.perf_counter() - t_tick) * 1000.0)
             steps += 1
@@ -578,7 +604,16 @@ class Agent:
         if self.cfg.lockstep and not self.driver.answers_steps:  # the command went over the device's wire
             self._answer_pub.put(encode(Answer(id=self.id, step=k, stamp=self._stamp(), wire=self.driver.wire_sent,
                                                sync=first)))
-        if self.view is not None:  # after the answer: the world's step waits for nothing of it
+        # after the answer: the world's step waits for nothing of it
+        if self.steplog_fleet is not None:
+            payload = self.steplog_fleet.record(inp, out, self.driver.last_sent)
+            if self._step_file is not None:
+                self._step_file.write(payload + b"\n")
+            if self._step_pub is not None:
+                self._step_pub.put(payload)
+        if self.view is not None:
+            if self.steplog is not None:
+                self.view.on_step_io(self.steplog.record(inp, out, self.driver.last_sent), inp.now)
             self.view.on_step(self.pipeline, inp, out, self.driver.last_sent)
         self.hist.add((time.perf_counter() - self._in.sensor_perf) * 1000.0)
         if self.ros_graph is not None:  # hands the step over to its publisher thread; a goal for the next step

@@ -52,6 +52,10 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--record", metavar="FILE", help="record this robot's own view to an MCAP file (the 'viz' extra)")
     ap.add_argument("--viz", nargs="?", const=DEFAULT_VIZ, metavar="EP",
                     help=f"serve this robot's own view live, Foxglove WebSocket (default {DEFAULT_VIZ}; loopback unless --allow-remote)")
+    ap.add_argument("--log-steps", action="store_true",
+                    help="publish every control step's inputs and outputs (step_io) for a recorder elsewhere")
+    ap.add_argument("--step-log", metavar="FILE",
+                    help="append every control step's inputs and outputs to FILE, a JSON line a step (set by a recording stack-fleet)")
     ap.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     return ap
 
@@ -81,7 +85,8 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
         require_sdk("--record" if a.record else "--viz")
     return AgentConfig(robot_id=a.id, scenario=sc, connect=a.connect, fleet=a.fleet, lockstep=a.lockstep,
                        steps=a.steps, seed=a.seed, zenoh_config=a.zenoh_config, allow_remote=a.allow_remote,
-                       record=a.record, viz=a.viz)
+                       record=a.record, viz=a.viz, log_steps=a.log_steps,
+                       step_log=a.step_log)
 
 
 def _check_flags(a: argparse.Namespace) -> None:

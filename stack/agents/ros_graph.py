@@ -214,8 +214,7 @@ class RosGraphLink:
     # --- the control loop's side (never blocks) ------------------------------------------------
     def step(self, t: float, stamp: float, pipeline) -> None:
         """After control step at time ``t`` (agent clock; ``stamp`` the header's): hand over its estimate and
-        target (at most ``rate_hz``), and give a goal received since the last step to the decision layer."""
-        self._apply_goal(pipeline)
+        target (at most ``rate_hz``). A goal received goes in through the next step's inputs (:meth:`take_goal`)."""
         if not self._due(t):
             return
         ekf, target = pipeline.estimator, pipeline.decision.target
@@ -238,18 +237,20 @@ class RosGraphLink:
         self._next_t = t + period if late else self._next_t + period
         return True
 
-    def _apply_goal(self, pipeline) -> None:
+    def take_goal(self, pipeline) -> tuple[float, float] | None:
+        """The goal received since the last step, for the next step's inputs (``StepInputs.goal``: a step's log
+        then holds it, and a replay applies it at the same step); None if none, or not for this robot's role."""
         with self._lock:
             goal, self._goal = self._goal, None
         if goal is None:
-            return
+            return None
         if pipeline.role not in ("leader", "peer"):
             self._drop("goal_not_leader", f"goal {goal} for a {pipeline.role}: send goals to the leader")
-            return
-        pipeline.decision.set_goal(goal)
+            return None
         self._count("goal_applied")
         log.info("agent %s: new goal (%.2f, %.2f) from %s", pipeline.id, *goal,
                  rmw_zenoh.fully_qualified(self.namespace, self.cfg.goal_topic))
+        return goal
 
     # --- the publisher thread ------------------------------------------------------------------
     def _publish_loop(self) -> None:

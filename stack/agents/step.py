@@ -90,6 +90,8 @@ class StepInputs:
     held: str | None = None
     """Why this robot holds whatever the step decides (its session lost its routers: ``"no-network"``). The estimator
     runs on; who is gone, and so the roles, stay as they were; the command is zero."""
+    goal: tuple[float, float] | None = None
+    """A new goal for the mission (the ROS graph's goal topic), taken before the step (site frame)."""
 
 
 @dataclass(frozen=True)
@@ -148,6 +150,7 @@ class StepPipeline:
         self.id = robot_id
         self.cfg = config or StepConfig()
         seed = scenario.seed if seed is None else seed
+        self.seed = seed
         self.role = robot.role or "peer"
         self.radio = RadioModel(config_from_scenario(scenario.comm, robot.comm_range, seed), robot_id)
         v_std, w_std = robot.odom_noise
@@ -186,6 +189,8 @@ class StepPipeline:
 
     # --- the step ------------------------------------------------------------------------------
     def step(self, inp: StepInputs) -> StepOutput:
+        if inp.goal is not None:
+            self.decision.set_goal(inp.goal)
         if inp.held is None:  # a robot that cannot hear keeps its peers: their tokens went with its own link
             self._note_gone(inp)
             self.membership.update(self.gone)

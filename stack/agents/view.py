@@ -30,6 +30,7 @@ from ..comm.messages import Diag
 from ..scenario import Scenario
 from ..viz import messages as vm
 from ..viz.writer import QueuedWriter, SinkConfig
+from . import steplog
 from .step import StepInputs, StepOutput, StepPipeline
 
 LINK_KEYS = ("delivered", "dropped_range", "dropped_loss")
@@ -70,12 +71,13 @@ class _Channels:
         self.scan = LaserScanChannel(t(rid, "scan"), context=ctx)
         self.scene = SceneUpdateChannel(t(rid, "scene"), context=ctx)
         self.links = SceneUpdateChannel(t(rid, "links"), context=ctx)
+        self.step_io = Channel(t(rid, steplog.WHAT), schema=js["step_io"], message_encoding="json", context=ctx)
         self.json = {k: Channel(t(rid, k), schema=js[k], message_encoding="json", context=ctx)
                      for k in ("cmd_vel", "state", "diag", "covariance", "decision", "heard")}
 
     def close(self) -> None:
         for ch in [self.tf_estimate, self.obstacles, self.events, self.estimate, self.scan, self.scene, self.links,
-                   *self.json.values()]:
+                   self.step_io, *self.json.values()]:
             ch.close()
 
 
@@ -112,6 +114,10 @@ class AgentView(QueuedWriter):
     def on_diag(self, d: Diag) -> None:
         self.put(("diag", d))
 
+    def on_step_io(self, payload: bytes, now: float) -> None:
+        """The step's record (``steplog``), already encoded: written as it is."""
+        self.put(("step_io", payload, now))
+
     def open_channels(self, ctx: Context) -> None:
         self._ch = _Channels(ctx, self.id)
 
@@ -121,6 +127,9 @@ class AgentView(QueuedWriter):
             self._step(rest[0])
         elif kind == "diag":
             self._diag(rest[0])
+        elif kind == "step_io":
+            ns = int(round(rest[1] * 1e9))
+            self.write(self._ch.step_io, self._topic(steplog.WHAT), rest[0], ns)
         else:
             self.event(*rest)
 

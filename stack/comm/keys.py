@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-ROBOT_TOPICS = ("state", "cmd_vel", "answer", "scan", "odom", "imu", "fix", "diag")
+ROBOT_TOPICS = ("state", "cmd_vel", "answer", "scan", "odom", "imu", "fix", "diag", "step_io")
 
 
 @dataclass(frozen=True)

@@ -99,8 +99,11 @@ def parser() -> argparse.ArgumentParser:
                         "off loopback only with --allow-remote)")
     r.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     sub.add_parser("generate", add_help=False, help="write a generated, solvable obstacle course (docs/courses.md)")
-    p = sub.add_parser("replay", help="animate a run from its run.mcap (replay.gif), without any app")
+    p = sub.add_parser("replay", help="animate a run from its run.mcap (replay.gif), without any app; --verify: "
+                                      "replay every robot's steps to the bit")
     p.add_argument("run_dir", type=Path, help="a run's folder (or its run.mcap)")
+    p.add_argument("--verify", action="store_true", help="replay every robot's recorded steps through its pipeline "
+                   "(stack-replay); exit 1 naming any robot that does not reproduce to the bit")
     p.add_argument("--out", default="replay.gif", help="GIF to write, relative to RUN_DIR (default replay.gif)")
     p.add_argument("--max-frames", type=positive_int, default=150)
     p.add_argument("--fps", type=_positive, default=10.0)
@@ -214,6 +217,10 @@ def cli(argv: list[str] | None = None) -> int:
 
         return generate_main(argv[1:], prog="stack-fleet generate")
     a = parser().parse_args(argv)
+    if a.cmd == "replay" and a.verify:
+        from ..replay.cli import verify
+
+        return verify(a.run_dir)
     if a.cmd == "replay":
         from .replay import main as replay_main
 

@@ -267,6 +267,12 @@ class Fleet:
             argv += ["--role", r.role]
         if not self.cfg.realtime:
             argv.append("--lockstep")
+        if self.cfg.record and self.recorder is not None:  # every step's inputs in run.mcap (stack-replay): a file
+            path = self.out / "logs" / f"steps-{rid}.jsonl"  # each, read by the recorder at the end (not over Zenoh)
+            if rid not in self.recorder.step_logs:  # a restart appends (its life starts again at n = 0)
+                path.unlink(missing_ok=True)  # an earlier run's in the same folder does not
+            self.recorder.step_logs[rid] = path
+            argv += ["--step-log", str(path)]
         return self.spawn(f"agent {r.id}", argv, self.out / "logs" / log_name, self.env)
 
     # --- serve -----------------------------------------------------------------------------------

@@ -34,6 +34,8 @@ from foxglove.messages import Log, LogLevel
 
 from ..comm import Keys, MessageError, decode
 from ..comm.messages import Clock, CmdVel, Diag, FaultAck, FaultRequest, Scan, State, Truth, WorldStatus
+from ..agents import steplog
+from ..agents.steplog import WHAT as STEP_IO
 from ..scenario import Scenario
 from ..viz.endpoint import DEFAULT_VIZ, parse_viz_endpoint  # noqa: F401 - the fleet's CLI and tests use them from here
 from ..viz.writer import COMPRESSION, QueuedWriter, RecorderError, SinkConfig  # noqa: F401
@@ -92,7 +94,7 @@ class _Channels:
             "estimate": PoseInFrameChannel(vm.robot_topic(rid, "estimate"), context=ctx),
             "scan": LaserScanChannel(vm.robot_topic(rid, "scan"), context=ctx),
             **{k: Channel(vm.robot_topic(rid, k), schema=js[k], message_encoding="json", context=ctx)
-               for k in ("cmd_vel", "state", "diag")},
+               for k in ("cmd_vel", "state", "diag", STEP_IO)},
         } for rid in ids}
 
     def close(self) -> None:
@@ -114,6 +116,7 @@ class Recorder(QueuedWriter):
         self._ch = None
         self._pending: list = []  # samples before the first clock, while the time base is unknown
         self._view = _View()
+        self.step_logs: dict[int, Path] = {}  # robot -> its agent's --step-log file, written in at the end
 
     # --- life cycle ------------------------------------------------------------------
     def start(self) -> "Recorder":
@@ -127,7 +130,7 @@ class Recorder(QueuedWriter):
     def _subscribe(self) -> None:
         k, s = self.keys, self.s
         self._subs = [s.declare_subscriber(k.world(name), self._enqueue(name)) for name in _WORLD_KINDS]
-        self._subs += [s.declare_subscriber(k.all_robots(name), self._enqueue(name)) for name in _ROBOT_KINDS]
+        self._subs += [s.declare_subscriber(k.all_robots(name), self._enqueue(name)) for name in (*_ROBOT_KINDS, STEP_IO)]
         self._subs.append(s.liveliness().declare_subscriber(k.all_alive, self._on_alive, history=True))
 
     def stop(self) -> None:
@@ -159,6 +162,15 @@ class Recorder(QueuedWriter):
     def handle(self, kind: str, key: str, payload, recv_ns: int) -> None:
         if kind == "alive":
             msg = payload
+        elif kind == STEP_IO:  # written as it came (JSON); only its head is read, to place it
+            try:
+                msg = (steplog.head(payload), payload)
+            except steplog.LogError:
+                self.malformed += 1
+                return
+            if msg[0].id not in self._ch.robot or Keys.id_of(key) != msg[0].id:
+                self.malformed += 1
+                return
         else:
             try:
                 msg = decode(payload, _WORLD_KINDS.get(kind) or _ROBOT_KINDS[kind])
@@ -186,6 +198,7 @@ class Recorder(QueuedWriter):
             self.realtime = False
             for p in self._pending:
                 _dispatch(self, *p)
+        self._step_logs_in()
         dropped = self.dropped_now()
         level = LogLevel.Warning if dropped or self.malformed else LogLevel.Info
         self.event(self.last_ns, f"recorder: {sum(self.counts.values())} messages written, {dropped} dropped "
@@ -196,6 +209,27 @@ class Recorder(QueuedWriter):
             "queue_size": str(self.cfg.queue_size), "counts": json.dumps(self.counts), "writer_cpu_s": f"{self.cpu_s():.3f}"})
         self.attach("scenario.yaml", "application/yaml", self.sc.to_yaml().encode(), time.time_ns())
         self._ch.close()
+
+    def _step_logs_in(self) -> None:
+        """Each agent's step-log file (``stack-agent --step-log``) into its ``/robot_<id>/step_io`` channel, at each
+        record's own time, then removes the file; a line that does not decode (a killed agent's torn last one) is counted
+        as malformed."""
+        for rid, path in sorted(self.step_logs.items()):
+            if rid not in self._ch.robot or not path.exists():
+                continue
+            with path.open("rb") as f:
+                for line in f:
+                    try:
+                        head = steplog.head(line.rstrip(b"\n"))
+                    except steplog.LogError:
+                        self.malformed += 1
+                        continue
+                    if head.id != rid:
+                        self.malformed += 1
+                        continue
+                    ns = int(round((head.t if not self.realtime else head.now) * 1e9))
+                    self.write(self._ch.robot[rid][STEP_IO], vm.robot_topic(rid, STEP_IO), line.rstrip(b"\n"), ns)
+            path.unlink()  # the recording has them now
 
     # --- what the handlers use -------------------------------------------------------------
     def stamp(self, sim_t: float, recv_ns: int) -> int:

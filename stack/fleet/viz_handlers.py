@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from foxglove.messages import LogLevel
 
+from ..agents.steplog import WHAT as STEP_IO
 from ..comm import Keys
 from ..comm.messages import Clock, CmdVel, Diag, FaultAck, FaultRequest, Scan, State, Truth, WorldStatus
 from . import viz_messages as vm
@@ -51,13 +52,20 @@ def on_scan(rec, ch, v, key: str, m: Scan, recv_ns: int) -> None:
     rec.write(ch.robot[m.id]["scan"], vm.robot_topic(m.id, "scan"), vm.laser_scan(m, ns), ns)
 
 
+def on_step_io(rec, ch, v, key: str, m, recv_ns: int) -> None:
+    """A robot's step record (``stack.agents.steplog``): written as the agent encoded it."""
+    head, payload = m
+    rec.write(ch.robot[head.id][STEP_IO], vm.robot_topic(head.id, STEP_IO), payload, rec.stamp(head.t, recv_ns))
+
+
 def on_state(rec, ch, v, key: str, m: State, recv_ns: int) -> None:
     ns = rec.stamp(m.stamp, recv_ns)
     rec.write(ch.tf_estimate, T["tf_estimate"], vm.estimate_transform(m, ns), ns)
     rec.write(ch.robot[m.id]["estimate"], vm.robot_topic(m.id, "estimate"), vm.pose_in_world(m.x, m.y, m.yaw, ns), ns)
     doc = {"id": m.id, "step": m.step, "role": m.role, "policy": rec.sc.robot(m.id).policy,
-           "situation": m.situation or "", "x": m.x, "y": m.y, "yaw": m.yaw, "v": m.v, "w": m.w}
-    doc.update({k: getattr(m, k) for k in ("cov_trace", "d_goal") if getattr(m, k) is not None})
+           "situation": m.situation or "", "x": m.x, "y": m.y, "yaw": m.yaw, "v": m.v, "w": m.w, "seq": m.seq,
+           "stamp": m.stamp}  # seq and stamp: the agents' step records name the states they took by them
+    doc.update({k: getattr(m, k) for k in ("cov_trace", "d_goal", "wall") if getattr(m, k) is not None})
     rec.write(ch.robot[m.id]["state"], vm.robot_topic(m.id, "state"), doc, ns)
     old = v.roles.get(m.id)
     if old is not None and old != m.role:
@@ -114,4 +122,5 @@ def on_alive(rec, ch, v, key: str, left: bool, recv_ns: int) -> None:
 
 
 HANDLERS = {"clock": on_clock, "truth": on_truth, "scan": on_scan, "state": on_state, "cmd_vel": on_cmd_vel,
-            "diag": on_diag, "status": on_status, "fault": on_fault, "fault_ack": on_fault_ack, "alive": on_alive}
+            "diag": on_diag, "status": on_status, "fault": on_fault, "fault_ack": on_fault_ack, "alive": on_alive,
+            STEP_IO: on_step_io}
