@@ -231,3 +231,26 @@ def test_the_golden_logs_can_be_extracted_from_a_run(tmp_path):
     shutil.copy(tmp_path / "again.mcap", tmp_path / "copy.mcap")
     for rid in range(4):
         assert replay(read_log(tmp_path / "copy.mcap", rid), Changes()).reproduced
+
+
+def test_other_weights_change_the_networks_decisions(tmp_path, capsys):
+    """``--set robot.drl.weights=FILE``: the same recorded steps through the training chain's weights."""
+    chain = ROOT / "stack/policies/drl/weights/drl-chain.pt"
+    code = replay_main([str(GOLDEN / "obstacles-drl.mcap"), "--robot-id", "1", "--set", f"robot.drl.weights={chain}",
+                        "--out", str(tmp_path)])
+    out = capsys.readouterr().out
+    assert code == 1 and out.startswith("first divergence: step "), out
+    missing = replay_main([str(GOLDEN / "obstacles-drl.mcap"), "--robot-id", "0", "--set", "robot.drl.weights=nope.npz"])
+    err = capsys.readouterr().err.strip()
+    assert missing == 2 and len(err.splitlines()) == 1 and "nope.npz" in err, err
+
+
+def test_bad_step_log_and_out_paths_are_one_line(tmp_path, capsys):
+    p = run_cli(["stack-agent", "--id", "1", "--scenario", str(ROOT / "scenarios/four-robot-diamond.yaml"),
+                 "--connect", "tcp/127.0.0.1:9", "--step-log", str(tmp_path / "no" / "such" / "dir" / "s.jsonl")], timeout=60)
+    assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1 and "--step-log" in p.stderr, p.stderr
+    (tmp_path / "file").write_text("x")
+    code = replay_main([str(GOLDEN / "diamond-pid.mcap"), "--robot-id", "1", "--set", "robot.pid.k_v=1.5",
+                        "--out", str(tmp_path / "file" / "sub")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and "cannot write" in err, err

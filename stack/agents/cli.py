@@ -83,6 +83,11 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
         parse_viz_endpoint(a.viz, a.allow_remote)
     if a.record or a.viz is not None:
         require_sdk("--record" if a.record else "--viz")
+    if a.step_log:
+        try:
+            open(a.step_log, "ab").close()  # noqa: SIM115 - only whether it can be written, before any command
+        except OSError as e:
+            raise ScenarioError(f"--step-log {a.step_log}: cannot write ({e.strerror or e})") from None
     return AgentConfig(robot_id=a.id, scenario=sc, connect=a.connect, fleet=a.fleet, lockstep=a.lockstep,
                        steps=a.steps, seed=a.seed, zenoh_config=a.zenoh_config, allow_remote=a.allow_remote,
                        record=a.record, viz=a.viz, log_steps=a.log_steps,

@@ -138,6 +138,9 @@ def main(argv: list[str] | None = None) -> int:
     except (LogError, ScenarioError) as e:
         print(f"{PROG}: {e}", file=sys.stderr)
         return 2
+    except OSError as e:  # --out cannot be made or written
+        print(f"{PROG}: {e.filename or a.out}: cannot write ({e.strerror or e})", file=sys.stderr)
+        return 2
 
 
 def verify(run: Path) -> int:
