@@ -151,8 +151,10 @@ def test_the_world_takes_a_step_s_commands_only_once_the_device_has_all_its_driv
         host.send("Set_Input_Vel", 5, Input_Vel=0.0, Input_Torque_FF=0.0)
         time.sleep(0.05)
         assert wires.deliver({2: dev}, {2: (1, True)}, 3 * DT, threading.Event()) == []
-        threading.Timer(0.05, lambda: host.send("Set_Input_Vel", 5, Input_Vel=-0.5, Input_Torque_FF=0.0)).start()
+        late = threading.Timer(0.05, lambda: host.send("Set_Input_Vel", 5, Input_Vel=-0.5, Input_Torque_FF=0.0))
+        late.start()
         assert wires.deliver({2: dev}, {2: (2, False)}, 4 * DT, threading.Event()) == []
+        late.join()  # its send returns after the device has the frame (the serial flush): not after the bus is closed
         assert dev.pair.axes[5].input_vel == pytest.approx(-0.5)
         assert math.isclose(dev.device_time(4 * DT), dev.device_time(0.0) + 4 * DT)
     finally:
