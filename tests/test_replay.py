@@ -82,6 +82,15 @@ def test_a_changed_gain_diverges_at_the_step_a_run_with_that_gain_first_differs(
     steps = len(golden.segments[0].records)
     assert counts == {"/robot_1/recorded/cmd_vel": steps, "/robot_1/replayed/cmd_vel": steps,
                       "/robot_1/recorded/estimate": steps, "/robot_1/replayed/estimate": steps, "/replay/events": 1}
+    # seen as a user sees it: the replay's MCAP opens in the real viewer (tests/lichtblick.py) with no problem
+    from lichtblick import Viewer
+
+    with Viewer(tmp_path / "replay") as v:
+        v.open_recording(mcap.name, at_ns=summary.statistics.message_end_time)
+        v.page.wait_for_timeout(2000)
+        problems, listed = v.problems(), set(v.topics())
+    assert not problems, "the viewer reports:\n" + "\n".join(problems)
+    assert set(counts) <= listed, sorted(set(counts) - listed)
 
 
 def test_changes_that_make_no_difference_and_bad_changes(capsys):
@@ -177,6 +186,25 @@ def test_a_gap_in_a_log_stops_the_replay_before_it(tmp_path, capsys):
     assert "robot 2's step 10 took robot 0's state seq 10, which the recording does not have" in cap.err, cap.err
     assert verify(tmp_path / "nostate.mcap") == 1
     assert "reproduced only up to where their logs stop" in capsys.readouterr().out
+
+
+def test_a_record_the_step_cannot_take_and_bad_setups_are_one_line(tmp_path, capsys):
+    def bad_guard(d):
+        if d.get("setup"):
+            d["setup"]["step_config"]["guard"]["margin"] = -5.0
+        return d
+
+    def bad_scan(d):
+        if d["n"] == 3 and d.get("scan"):
+            d["scan"]["ranges"] = d["scan"]["ranges"][:7]  # a scan of another lidar than the recorded robot's
+        return d
+
+    for name, edit, msg in (("guard.mcap", bad_guard, "do not build a pipeline here"),
+                            ("scan.mcap", bad_scan, "step 3: the step pipeline raised")):
+        _rewrite(GOLDEN / "obstacles-aina.mcap", tmp_path / name, edit)
+        assert replay_main([str(tmp_path / name), "--robot-id", "1"]) == 2, name
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and msg in err, (name, err)
 
 
 def test_a_recording_without_step_records_says_why(tmp_path, capsys):

@@ -130,11 +130,14 @@ def pipeline_of(setup: Setup, changes: Changes) -> StepPipeline:
     names = {f.name for f in fields(StepConfig)}
     if set(d) - names:
         raise LogError(f"setup: step settings this stack does not know: {sorted(set(d) - names)}")
-    d["guard"] = GuardConfig(**d.get("guard", {}))
     policy = changes.policy or setup.policy
     if changes.robot_file or any(s.startswith("robot.policy=") for s in changes.sets):
         policy = changes.policy or sc.robot(setup.robot).policy
-    return StepPipeline(sc, setup.robot, policy=policy, seed=setup.seed, config=StepConfig(**d))
+    try:
+        d["guard"] = GuardConfig(**d.get("guard", {}))
+        return StepPipeline(sc, setup.robot, policy=policy, seed=setup.seed, config=StepConfig(**d))
+    except (TypeError, ValueError) as e:  # settings this stack's pipeline refuses
+        raise LogError(f"setup: the recorded step settings do not build a pipeline here ({e})") from None
 
 
 def replay(log: RobotLog, changes: Changes | None = None, progress=None) -> Result:
@@ -151,7 +154,11 @@ def replay(log: RobotLog, changes: Changes | None = None, progress=None) -> Resu
             for rec, ns in zip(seg.records, seg.stamps):
                 inp = steplog.inputs_of(rec, scan)
                 scan = inp.scan
-                out = pl.step(inp)
+                try:
+                    out = pl.step(inp)
+                except Exception as e:  # noqa: BLE001 - a record the step cannot take (edited, or another version's)
+                    raise LogError(f"robot {log.robot}, step {rec.step}: the step pipeline raised "
+                                   f"{type(e).__name__}: {e}") from None
                 row = Row(rec.step, rec.t_run, rec.out, steplog.out_of(out, pl), ns)
                 res.rows.append(row)
                 if res.first is None and (d := differing(row.recorded, row.replayed)):
