@@ -71,6 +71,9 @@ class Obstacle:
     start: tuple[float, float] = (0.0, 0.0)  # wall `from`
     end: tuple[float, float] = (0.0, 0.0)  # wall `to`
     thickness: float = 0.0
+    virtual: bool = False
+    """In a fleet with real robots: the obstacle is not in the real site, only in the world (the simulated robots
+    see it; a real robot with ``lidar.virtual`` has it merged into its scan). False: it stands in the site too."""
 
     def as_box(self) -> tuple[float, float, float, float, float]:
         """Walls and boxes as (cx, cy, half_x, half_y, yaw)."""
@@ -97,6 +100,13 @@ class LidarConfig:
     """Each sensor source's settings (``robot.lidar.<source>``), as a dict of its config's fields."""
     device: dict[str, Any] = field(default_factory=dict)
     """Simulation only: the settings of the simulated lidar behind the source (``robot.lidar.device``)."""
+    virtual: bool = False
+    """A real robot (``embodiment: real``): merge the world's virtual robots and obstacles into its real scan
+    (``stack.agents.virtual``); no effect on a simulated robot, whose scan is the world's already."""
+    virtual_timeout: float = 0.5
+    """[s] a virtual scan older than this (agent clock, from its arrival) is dropped from the merge."""
+    virtual_lost_speed: float = 0.25
+    """[m/s] while the virtual side is lost (after it was seen), forward speed is held to at most this."""
 
     @property
     def params(self) -> dict[str, Any]:
@@ -157,6 +167,11 @@ class RobotConfig:
     settings: Mapping[str, Any] = field(default_factory=dict)
     """Policy settings key (``robot.<key>``) -> its resolved config dataclass: every block the scenario
     gives, and this robot's policy and ``pid`` (situation 1) with their defaults where it gives none."""
+    embodiment: str = "simulated"
+    """``simulated``: the world simulates the robot; ``real``: it lives outside the world (its agent runs where
+    the robot is, on its own driver) and the world places a body at its pose (``pose_source``)."""
+    pose_source: "PoseSource | None" = None
+    """A real robot: where the world takes its pose from (None for a simulated robot)."""
 
     @property
     def policy_key(self) -> str:
@@ -184,6 +199,19 @@ class RobotConfig:
         """This robot with the default config of each of ``keys`` it has no settings for (resolved, so logged)."""
         missing = {k: self.config_for(k) for k in keys if k not in self.settings}
         return replace(self, settings=dict(self.settings) | missing) if missing else self
+
+
+@dataclass(frozen=True)
+class PoseSource:
+    """Where the world takes a real robot's pose (``robots[i].pose_source``)."""
+
+    key: str | None = None
+    """A Zenoh key carrying ``geometry_msgs/msg/PoseStamped`` in CDR, in the site frame (a motion-capture system's
+    topic through zenoh-bridge-ros2dds, e.g. ``vrpn_mocap/robot0/pose``); None: the robot's own published estimate
+    (its ``state``)."""
+    stale_after_s: float = 0.5
+    """[s] a pose older than this (world clock, from its arrival) is stale: the body stays at its last pose, grown
+    by the distance the robot could have driven since (at ``v_max``, at most ``STALE_GROWTH_MAX_M``)."""
 
 
 @dataclass(frozen=True)
@@ -546,7 +574,8 @@ def _lidar(rd: _Reader, value: Any, path: str, prev: LidarConfig) -> LidarConfig
     from .drivers import LIDARS
 
     sources = {n for n, rec in LIDARS.items() if rec.config}
-    m = rd.mapping(value, path, {"beams", "fov_deg", "range", "noise_std", "source", "mount", "device"} | sources)
+    m = rd.mapping(value, path, {"beams", "fov_deg", "range", "noise_std", "source", "mount", "device", "virtual",
+                                 "virtual_timeout", "virtual_lost_speed"} | sources)
     mount = prev.mount
     if "mount" in m:
         mx, my, myaw = rd.vector(m["mount"], f"{path}.mount", 3)
@@ -559,6 +588,11 @@ def _lidar(rd: _Reader, value: Any, path: str, prev: LidarConfig) -> LidarConfig
         source=rd.choice(m.get("source", prev.source), f"{path}.source", LIDARS.names()), mount=mount,
         blocks=_lidar_blocks(rd, m, path, prev.blocks, sources),
         device=dict(prev.device) | dict(rd.mapping(m.get("device") or {}, f"{path}.device", _lidar_device_keys(m, prev))),
+        virtual=rd.boolean(m.get("virtual", prev.virtual), f"{path}.virtual"),
+        virtual_timeout=rd.number(m.get("virtual_timeout", prev.virtual_timeout), f"{path}.virtual_timeout", 0.0, 60.0,
+                                  lo_open=True),
+        virtual_lost_speed=rd.number(m.get("virtual_lost_speed", prev.virtual_lost_speed), f"{path}.virtual_lost_speed",
+                                     0.0, 20.0),
     )
     _check_lidar_device(rd, out, path)
     return out
@@ -673,6 +707,9 @@ def _slots(rd: _Reader, slots_d: Any, path: str, seen: set[int], leader: int) ->
 def _obstacle(rd: _Reader, d: Any, path: str) -> Obstacle:
     if not isinstance(d, dict) or "type" not in d:
         raise rd.fail(path, "expected a mapping with a type (cylinder, box or wall)")
+    if "virtual" in d:  # in the world only, not in the real site
+        virtual = rd.boolean(d["virtual"], f"{path}.virtual")
+        return replace(_obstacle(rd, {k: v for k, v in d.items() if k != "virtual"}, path), virtual=virtual)
     kind = rd.choice(d["type"], f"{path}.type", ("cylinder", "box", "wall"))
     if kind == "cylinder":
         rd.mapping(d, path, {"type", "x", "y", "radius"})
@@ -792,7 +829,7 @@ def _robots(rd: _Reader, robots_d: Any, defaults: dict[str, Any]) -> list[RobotC
 
 def _robot(rd: _Reader, r: Any, p: str, defaults: dict[str, Any]) -> RobotConfig:
     """One ``robots[i]``: id, pose, role and goal, then its own fields over the ``robot:`` defaults."""
-    r = rd.mapping(r, p, _robot_keys() | {"id", "role", "pose", "goal"})
+    r = rd.mapping(r, p, _robot_keys() | _ENTRY_KEYS)
     for k in ("id", "pose"):
         if k not in r:
             raise rd.fail(f"{p}.{k}", "missing")
@@ -804,8 +841,51 @@ def _robot(rd: _Reader, r: Any, p: str, defaults: dict[str, Any]) -> RobotConfig
     blocks, driver = fields_.pop("device_blocks", {}), fields_.get("driver", "sim")
     fields_["device"] = _resolve_device(rd, blocks, driver, p)
     fields_["odom_origin"] = _odom_origin(fields_.get("odom_origin", "auto"), blocks, driver)
+    fields_["embodiment"] = rd.choice(r.get("embodiment", "simulated"), f"{p}.embodiment", EMBODIMENTS)
+    fields_["pose_source"] = _pose_source(rd, r, p, fields_)
     robot = RobotConfig(id=rid, role=role, pose=(x, y, math.radians(yaw_deg)), goal=goal, **fields_)
     return robot.with_defaults("pid", robot.policy_key)
+
+
+EMBODIMENTS = ("simulated", "real")
+_ENTRY_KEYS = {"id", "role", "pose", "goal", "embodiment", "pose_source"}
+SIMULATION_ONLY = ("device", "odom_noise", "imu_noise", "base", "fix")
+"""What a ``robots[i]`` entry of a real robot may not set: settings of the world's simulated base and sensors."""
+
+
+def _pose_source(rd: _Reader, r: dict, p: str, fields_: dict[str, Any]) -> PoseSource | None:
+    """A real robot's ``pose_source`` (its estimate by default), after the checks a real robot's entry must pass."""
+    if fields_["embodiment"] == "simulated":
+        if "pose_source" in r:
+            raise rd.fail(f"{p}.pose_source", "only a real robot (embodiment: real) has a pose source")
+        return None
+    for k in SIMULATION_ONLY:
+        if k in r:
+            raise rd.fail(f"{p}.{k}", "a real robot has no simulated base or sensors (simulation only)")
+    if isinstance(r.get("lidar"), dict) and "device" in r["lidar"]:
+        raise rd.fail(f"{p}.lidar.device", "a real robot has no simulated lidar (simulation only)")
+    driver = fields_.get("driver", "sim")
+    if driver == "sim":
+        raise rd.fail(f"{p}.driver", "a real robot needs the driver of its base (jackal, can, mavlink); "
+                                     "sim is the world's simulated base")
+    if fields_.get("lidar", LidarConfig()).source == "world" and not _reads_scan(driver):
+        raise rd.fail(f"{p}.lidar.source", f"the world does not scan for a real robot: name its lidar (ros2, rplidar) "
+                                           f"or use a driver that reads one ({driver} does not)")
+    m = rd.mapping(r.get("pose_source") or {}, f"{p}.pose_source", {"key", "stale_after_s"})
+    key = m.get("key")
+    if key is not None:
+        from .comm.keys import check_key_expr
+
+        if not isinstance(key, str) or not key or (why := check_key_expr(key)) is not None:
+            raise rd.fail(f"{p}.pose_source.key", f"not a Zenoh key: {key!r}" + (f" ({why})" if isinstance(key, str) and key else ""))
+    stale = rd.number(m.get("stale_after_s", 0.5), f"{p}.pose_source.stale_after_s", 0.0, 60.0, lo_open=True)
+    return PoseSource(key=key, stale_after_s=stale)
+
+
+def _reads_scan(driver: str) -> bool:
+    from .drivers import DRIVERS
+
+    return bool(getattr(DRIVERS[driver].make(), "provides_scan", False))
 
 
 class _FileReader(_Reader):
@@ -819,7 +899,9 @@ def check_robot_entry(data: Any, source: str) -> None:
     """A robot's own settings file (``stack.robotfile``): the keys of one ``robots[i]`` entry, none of them
     required, each checked as the scenario checks it; errors name ``source`` and the key's path in it."""
     rd = _FileReader(source)
-    d = rd.mapping(data, "", _robot_keys() | {"id", "role", "pose", "goal"})
+    d = rd.mapping(data, "", _robot_keys() | _ENTRY_KEYS)
+    if "embodiment" in d:
+        rd.choice(d["embodiment"], "embodiment", EMBODIMENTS)
     if "id" in d:
         _max(rd, rd.integer(d["id"], "id", 0), 65535, "id")
     if "pose" in d:

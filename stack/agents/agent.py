@@ -38,6 +38,7 @@ from ..drivers.lidar import Lidar, make_lidar
 from ..scenario import Scenario, fix_due
 from .frames import StreamClock
 from .lidar import scan_from_driver, scan_from_lidar
+from .virtual import VirtualReturns
 from .ros_graph import RosGraphLink, open_ros_graph
 from .guard import GuardConfig
 from .step import OdomSample, StepConfig, StepInputs, StepOutput, StepPipeline
@@ -153,6 +154,8 @@ class Agent:
         self.driver: Driver = self._make_driver()
         self.ros_graph: RosGraphLink | None = None  # robot.ros_graph: opened by run() where enabled
         self.lidar: Lidar | None = self._make_lidar()
+        # a real robot's view of the virtual ones (robot.lidar.virtual): the world's virtual returns, merged
+        self.virtual = VirtualReturns(self.robot) if self.robot.embodiment == "real" and self.robot.lidar.virtual else None
         self._lidar_sync: tuple[int, int] | None = None  # lock-step: (device scans, scans we had) at our first step
         self._lidar_wait: tuple[int, float] | None = None  # lock-step: (step, wall deadline) of a wait for scans
         self._lidar_taken = (0, None)  # lock-step: (lidar_n, sim time) when a new scan was last taken
@@ -246,6 +249,12 @@ class Agent:
             self._in.scan, self._in.scan_t = m, self._now()
             self._in.sensor_perf = time.perf_counter()
             self._cv.notify_all()
+
+    def _on_virtual_scan(self, sample: zenoh.Sample) -> None:
+        try:
+            self.virtual.accept(decode(sample.payload.to_bytes(), Scan), self._now())
+        except (MessageError, ValueError):
+            self._count_malformed(str(sample.key_expr))
 
     def _own_scan(self, m: Scan) -> Scan:
         if m.id != self.id:
@@ -375,6 +384,8 @@ class Agent:
             subs.append(s.declare_subscriber(k.all_robots("state"), self._on_state))
         if self.lidar is None:
             subs.append(s.declare_subscriber(k.robot(self.id, "scan"), self._on_scan))
+        if self.virtual is not None:
+            subs.append(s.declare_subscriber(k.robot(self.id, "virtual_scan"), self._on_virtual_scan))
         token = None
         try:
             self.ros_graph = open_ros_graph(self.robot, s, self._count_malformed)
@@ -546,6 +557,8 @@ class Agent:
             self._hold("no router")
         with self._cv:
             scan = self._current_scan(now)
+            if scan is not None and self.virtual is not None:  # the virtual robots and obstacles, where fresh
+                scan = self.virtual.merge(scan, now)
             if scan is None or (not self._in.odometry and self.step < 0):
                 self._hold("no odometry and scan yet")
                 return None
@@ -600,7 +613,10 @@ class Agent:
                    step=k, situation=out.situation, wall=time.time(), cov_trace=out.cov_trace, d_goal=out.d_goal)
         self._state_pub.put(encode(st))
         self.sent += 1
-        self.driver.command(out.v, out.w, step=k)
+        v, w = out.v, out.w
+        if self.virtual is not None:  # the virtual side lost: slower (virtual.py)
+            v, w = self.virtual.hold(v, w, self._now())
+        self.driver.command(v, w, step=k)
         if self.cfg.lockstep and not self.driver.answers_steps:  # the command went over the device's wire
             self._answer_pub.put(encode(Answer(id=self.id, step=k, stamp=self._stamp(), wire=self.driver.wire_sent,
                                                sync=first)))
@@ -641,7 +657,8 @@ class Agent:
                  shield_masked=getattr(pl.policy, "masked", None), guard_caps=pl.guard.capped,
                  guard_slides=pl.guard.slides, links=pl.radio.links(), stuck=pl.decision.livelock(),
                  led=[list(iv) for iv in pl.drove_led], held_steps=pl.held_steps, tokens_kept=self.judge.discarded,
-                 link_outages=[[o.start + off, None if o.end is None else o.end + off] for o in self.link.outages])
+                 link_outages=[[o.start + off, None if o.end is None else o.end + off] for o in self.link.outages],
+                 virtual=None if self.virtual is None else self.virtual.counters())
         self._diag_pub.put(encode(d))
         if self.view is not None:
             self.view.on_diag(d)

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
-ROBOT_TOPICS = ("state", "cmd_vel", "answer", "scan", "odom", "imu", "fix", "diag", "step_io")
+ROBOT_TOPICS = ("state", "cmd_vel", "answer", "scan", "odom", "imu", "fix", "diag", "step_io", "virtual_scan")
 
 
 @dataclass(frozen=True)
@@ -43,3 +44,15 @@ class Keys:
             return None
         token = parts[3] if parts[2] == "alive" else parts[2]
         return int(token) if token.isascii() and token.isdigit() else None
+
+
+_CHUNK = re.compile(r"[^/*$?#\s]+")
+
+
+def check_key_expr(key: str) -> str | None:
+    """Why ``key`` is not a concrete Zenoh key (chunks separated by '/', no wildcards, no spaces); None if it is."""
+    if key.startswith("/") or key.endswith("/"):
+        return "no leading or trailing '/'"
+    if not all(_CHUNK.fullmatch(c) for c in key.split("/")):
+        return "empty chunk, a wildcard ('*', '$', '?', '#') or a space"
+    return None

@@ -176,6 +176,8 @@ class Truth(_Msg):
     x: list[float]
     y: list[float]
     yaw: list[float]
+    real: list[int] = []  # robots outside the world (embodiment real): their x, y, yaw are their pose source's
+    stale: list[int] = []  # real robots whose pose source went stale: the body stands at the last pose, grown
 
 
 class WorldStatus(_Msg):
@@ -219,6 +221,7 @@ class Diag(_Msg):
     link_outages: list[list[Finite | None]] = []  # real time: [start, end] run times its session had no router
     held_steps: int = 0  # control steps held at zero: no router (its own loss) or a leader without a quorum
     tokens_kept: int = 0  # peers' liveliness tokens that went away with our own link (the peers were kept)
+    virtual: dict[str, int] | None = None  # a real robot with lidar.virtual: received, merged_scans, merged_returns, lost_steps
     odom_stale: int = 0  # control steps commanded zero because the odometry was stale
     lidar_stale: int = 0  # control steps commanded zero because the lidar was stale (policies that need it)
     scans_from_driver: int = 0  # real time: scans the robot's own driver read (a Jackal's LaserScan)

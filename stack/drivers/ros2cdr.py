@@ -32,6 +32,7 @@ TYPESTORE = get_typestore(Stores.ROS2_HUMBLE)
 TWIST = "geometry_msgs/msg/Twist"
 ODOMETRY = "nav_msgs/msg/Odometry"
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 
 CDR_LE_HEADER = b"\x00\x01\x00\x00"
 """Encapsulation header of little-endian plain CDR (what ROS 2 on x86/ARM sends)."""
@@ -170,6 +171,22 @@ def decode_odometry(data: bytes) -> Odometry:
     _finite("odometry twist", t.linear.x, t.linear.y, t.linear.z, t.angular.x, t.angular.y, t.angular.z)
     return Odometry(v=float(t.linear.x), w=float(t.angular.z), stamp=_seconds(m.header.stamp),
                     pose=(float(p.x), float(p.y), quaternion_yaw(q)))
+
+
+# --- geometry_msgs/PoseStamped (a motion-capture system's rigid body: vrpn_mocap, mocap4r2) --------------
+def encode_pose_stamped(stamp: float, x: float, y: float, yaw: float, *, frame_id: str = "world") -> bytes:
+    """A planar pose as ``geometry_msgs/PoseStamped`` in ``frame_id`` (z 0, a rotation about z)."""
+    pose = _T["geometry_msgs/msg/Pose"](position=_T["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0),
+                                        orientation=yaw_quaternion(yaw))
+    return serialize(_T[POSE_STAMPED](header=_header(stamp, frame_id), pose=pose), POSE_STAMPED)
+
+
+def decode_pose_stamped(data: bytes) -> tuple[float, float, float, float]:
+    """``geometry_msgs/PoseStamped`` CDR -> (stamp, x, y, yaw); every component must be finite."""
+    m = deserialize(data, POSE_STAMPED)
+    p, q = m.pose.position, m.pose.orientation
+    _finite("pose", p.x, p.y, p.z, q.x, q.y, q.z, q.w)
+    return _seconds(m.header.stamp), float(p.x), float(p.y), quaternion_yaw(q)
 
 
 # --- sensor_msgs/LaserScan ----------------------------------------------------------------

@@ -175,6 +175,16 @@ def run_config(a: argparse.Namespace) -> FleetConfig:
         if a.listen:
             raise ScenarioError("--connect and --listen: give one (join a router, or start ours on an endpoint)")
         endpoint_list(a.connect, a.allow_remote)
+    real = [r.id for r in sc.robots if r.embodiment == "real"]
+    if real and not a.realtime:
+        raise ScenarioError(f"{a.scenario}: robots {real} are real (embodiment: real): a fleet with real robots runs in "
+                            f"real time (--realtime)")
+    for kind, rid, _ in faults:
+        if rid in real:
+            raise ScenarioError(f"--{kind} {rid}@...: robot {rid} is real; its agent runs where the robot is, not here")
+    for rid, _ in a.device_fault:
+        if rid in real:
+            raise ScenarioError(f"--device-fault {rid}@...: robot {rid} is real; the world hosts no device for it")
     if a.external_agents and faults:
         raise ScenarioError("--external-agents: faults (--kill/--freeze/--restart) need agents this command started")
     if a.wait_agents <= 0:

@@ -250,11 +250,18 @@ class Fleet:
                 self._abort("world", world.poll(), f"{e}: {world.tail(3)}")
 
     def _start_agents(self) -> None:
+        """An agent for every simulated robot (none with ``external_agents``); then wait for the tokens of the
+        agents that run elsewhere: every real robot's (on the robot), all of them with ``external_agents``."""
+        real = {r.id for r in self.sc.robots if r.embodiment == "real"}
         if not self.cfg.external_agents:
             for r in self.sc.robots:
-                self.procs[f"agent-{r.id}"] = self._start_agent(r.id, f"agent-{r.id}.log")
-            return
-        missing = self.mon.wait_alive(set(self.sc.ids), self.cfg.wait_agents_s)
+                if r.id not in real:
+                    self.procs[f"agent-{r.id}"] = self._start_agent(r.id, f"agent-{r.id}.log")
+        elsewhere = set(self.sc.ids) if self.cfg.external_agents else real
+        if real:
+            log.warning("fleet: waiting for the real robots' agents %s: on each robot, stack-agent --id N --scenario "
+                        "%s --connect %s --fleet %s", sorted(real), self.agents_scenario, self.endpoint, self.fleet)
+        missing = self.mon.wait_alive(elsewhere, self.cfg.wait_agents_s) if elsewhere else set()
         if missing:
             self._abort("agents", None, f"robots {sorted(missing)} never came up on {self.endpoint} (fleet "
                                         f"{self.fleet!r}) within {self.cfg.wait_agents_s:g} s")

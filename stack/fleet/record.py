@@ -55,7 +55,7 @@ class _RecordedScan(Scan):
         pass
 
 
-_ROBOT_KINDS = {"scan": _RecordedScan, "state": State, "cmd_vel": CmdVel, "diag": Diag}
+_ROBOT_KINDS = {"scan": _RecordedScan, "state": State, "cmd_vel": CmdVel, "diag": Diag, "virtual_scan": _RecordedScan}
 
 
 @dataclass
@@ -78,7 +78,7 @@ class RecorderConfig(SinkConfig):
 class _Channels:
     """Every channel of a recording, on one SDK context (see :data:`.viz_messages.TOPICS`)."""
 
-    def __init__(self, ctx: Context, ids: list[int]):
+    def __init__(self, ctx: Context, ids: list[int], virtual: set[int] | frozenset[int] = frozenset()):
         t, js = vm.TOPICS, vm.JSON_SCHEMAS
         self.clock = Channel(t["clock"], schema=js["clock"], message_encoding="json", context=ctx)
         self.metrics = Channel(t["metrics"], schema=js["metrics"], message_encoding="json", context=ctx)
@@ -95,6 +95,8 @@ class _Channels:
             "scan": LaserScanChannel(vm.robot_topic(rid, "scan"), context=ctx),
             **{k: Channel(vm.robot_topic(rid, k), schema=js[k], message_encoding="json", context=ctx)
                for k in ("cmd_vel", "state", "diag", STEP_IO)},
+            **({"virtual_scan": LaserScanChannel(vm.robot_topic(rid, "virtual_scan"), context=ctx)} if rid in virtual
+               else {}),  # a real robot's virtual returns, apart from its own scan
         } for rid in ids}
 
     def close(self) -> None:
@@ -125,7 +127,7 @@ class Recorder(QueuedWriter):
         return self
 
     def open_channels(self, ctx: Context) -> None:
-        self._ch = _Channels(ctx, self.ids)
+        self._ch = _Channels(ctx, self.ids, {r.id for r in self.sc.robots if r.embodiment == "real" and r.lidar.virtual})
 
     def _subscribe(self) -> None:
         k, s = self.keys, self.s
@@ -177,7 +179,8 @@ class Recorder(QueuedWriter):
             except MessageError:
                 self.malformed += 1
                 return
-            if kind in _ROBOT_KINDS and (msg.id not in self._ch.robot or Keys.id_of(key) != msg.id):
+            if kind in _ROBOT_KINDS and (msg.id not in self._ch.robot or Keys.id_of(key) != msg.id
+                                         or kind not in self._ch.robot[msg.id] and kind in vm.ROBOT_TOPICS):
                 self.malformed += 1
                 return
         if self.realtime is None:
@@ -255,6 +258,7 @@ class _View:
         self.links_total: dict[tuple[int, int], dict[str, int]] = {}  # (sender, receiver) -> cumulative counts
         self.links_window: dict[tuple[int, int], dict[str, int]] = {}  # the last window's counts
         self.scene_at: float | None = None
+        self.stale: set[int] = set()  # real robots whose pose source is stale
 
 
 def _dispatch(rec: Recorder, kind: str, key: str, msg, recv_ns: int) -> None:

@@ -77,7 +77,26 @@ def report_of(sc: Scenario, log: TruthLog, tg: Targets, world: dict, *, diags: d
         "late_steps": world.get("late_steps"),  # lock-step: steps the world took without an agent's answer
         "livelock": m.livelock(diags),  # stuck episodes, what resolved them, the leader hold's give-ups
         "network": m.network(world, diags, sc.dt),  # outages, who led when, two_leaders_s
+        "mixed": _mixed(sc, world, diags),  # real robots: where their truth came from, stale spans, virtual returns
     }
+
+
+def _mixed(sc: Scenario, world: dict, diags: dict) -> dict | None:
+    """Mixed reality (robots with ``embodiment: real``): which robots were real, whose truth here was their pose
+    source's (their estimate or a motion-capture system, not the world's), when it was stale, and each real robot's
+    virtual returns (``stack.agents.virtual``). None in an all-simulated fleet."""
+    real = [r.id for r in sc.robots if r.embodiment == "real"]
+    if not real:
+        return None
+    sources = world.get("pose_sources", {})
+    return {"real_robots": real,
+            "truth_from_estimate": [rid for rid in real if sources.get(str(rid), "estimate") == "estimate"],
+            "truth_from_pose_source": {str(rid): sources[str(rid)] for rid in real
+                                       if sources.get(str(rid), "estimate") != "estimate"},
+            "poses_received": world.get("poses_received", {}), "pose_stale": world.get("pose_stale", []),
+            "pose_malformed": world.get("pose_malformed", {}),
+            "virtual_scans_sent": world.get("virtual_scans_sent", {}),
+            "virtual_returns": {str(rid): getattr(diags.get(rid), "virtual", None) for rid in real}}
 
 
 def _plot(sc: Scenario, log: TruthLog, tg: Targets, out: Path) -> None:

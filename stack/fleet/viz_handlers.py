@@ -29,7 +29,7 @@ def on_clock(rec, ch, v, key: str, m: Clock, recv_ns: int) -> None:
     v.dead = dead
     if v.scene_at is None or m.t - v.scene_at >= rec.cfg.scene_every_s - 1e-9:
         rec.write(ch.obstacles, T["obstacles"], vm.obstacles_scene(rec.sc, ns), ns)
-        rec.write(ch.robots, T["robots"], vm.robots_scene(rec.sc, v.estimates, ns), ns)
+        rec.write(ch.robots, T["robots"], vm.robots_scene(rec.sc, v.estimates, ns, v.stale), ns)
         v.scene_at = m.t
     if m.step % rec.cfg.links_window_steps == 0:
         rec.write(ch.links, T["links"], vm.links_scene(v.links_window, v.where, ns), ns)
@@ -42,6 +42,12 @@ def on_truth(rec, ch, v, key: str, m: Truth, recv_ns: int) -> None:
         if rid in ch.robot:
             rec.write(ch.robot[rid]["pose"], vm.robot_topic(rid, "pose"), vm.pose_in_world(x, y, yaw, ns), ns)
     v.where = {rid: (x, y) for rid, x, y in zip(m.ids, m.x, m.y)}
+    if set(m.stale) != v.stale:  # a real robot's pose went stale (or came back): drawn so at once
+        for rid in sorted(set(m.stale) ^ v.stale):
+            rec.event(ns, f"robot {rid}: pose " + ("stale (drawn grey, grown in the world)" if rid in m.stale else "back"),
+                      LogLevel.Warning if rid in m.stale else LogLevel.Info)
+        v.stale = set(m.stale)
+        rec.write(ch.robots, T["robots"], vm.robots_scene(rec.sc, v.estimates, ns, v.stale), ns)
     leader, targets = vm.slot_targets(rec.sc, m, v.dead)
     rec.write(ch.slots, T["slots"], vm.slots_scene(rec.sc, targets, ns), ns)
     rec.write(ch.metrics, T["metrics"], vm.metrics(rec.sc, m, leader, targets), ns)
@@ -50,6 +56,12 @@ def on_truth(rec, ch, v, key: str, m: Truth, recv_ns: int) -> None:
 def on_scan(rec, ch, v, key: str, m: Scan, recv_ns: int) -> None:
     ns = rec.stamp(m.stamp, recv_ns)
     rec.write(ch.robot[m.id]["scan"], vm.robot_topic(m.id, "scan"), vm.laser_scan(m, ns), ns)
+
+
+def on_virtual_scan(rec, ch, v, key: str, m: Scan, recv_ns: int) -> None:
+    """A real robot's virtual returns (what the world cast against the virtual bodies), on their own channel."""
+    ns = rec.stamp(m.stamp, recv_ns)
+    rec.write(ch.robot[m.id]["virtual_scan"], vm.robot_topic(m.id, "virtual_scan"), vm.laser_scan(m, ns), ns)
 
 
 def on_step_io(rec, ch, v, key: str, m, recv_ns: int) -> None:
@@ -123,4 +135,4 @@ def on_alive(rec, ch, v, key: str, left: bool, recv_ns: int) -> None:
 
 HANDLERS = {"clock": on_clock, "truth": on_truth, "scan": on_scan, "state": on_state, "cmd_vel": on_cmd_vel,
             "diag": on_diag, "status": on_status, "fault": on_fault, "fault_ack": on_fault_ack, "alive": on_alive,
-            STEP_IO: on_step_io}
+            STEP_IO: on_step_io, "virtual_scan": on_virtual_scan}

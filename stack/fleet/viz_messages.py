@@ -16,7 +16,7 @@ from foxglove.messages import (ArrowPrimitive, CylinderPrimitive, FrameTransform
 from ..comm.messages import State, Truth
 from ..scenario import Scenario, slot_position
 from ..sim_bridge.geometry import distance_to_obstacles
-from ..viz.messages import (_BODY, _ESTIMATE, _WHITE, JSON_SCHEMAS, LINK_COLORS, NO_RETURN, ROBOT_TOPICS,  # noqa: F401
+from ..viz.messages import (_BODY, _ESTIMATE, _REAL, _STALE, _WHITE, JSON_SCHEMAS, LINK_COLORS, NO_RETURN, ROBOT_TOPICS,  # noqa: F401
                             TOPICS, WORLD, estimate_frame, estimate_transform, frame, laser_scan, links_scene,
                             obstacles_scene, pose, pose_in_world, quat, robot_topic, slots_scene, ts)
 
@@ -29,20 +29,25 @@ def truth_transforms(m: Truth, ns: int) -> FrameTransforms:
         for rid, x, y, yaw in zip(m.ids, m.x, m.y, m.yaw)])
 
 
-def robots_scene(sc: Scenario, estimates: dict[int, State], ns: int) -> SceneUpdate:
+def robots_scene(sc: Scenario, estimates: dict[int, State], ns: int, stale: set[int] | frozenset[int] = frozenset()
+                 ) -> SceneUpdate:
     """Each robot's body (a cylinder, a heading arrow, its id) locked to its true frame ``robot_<id>``, and a
     disc of radius sqrt(trace P) locked to its estimate's frame: how far it believes it may be off. The
-    frames move with ``/tf`` and ``/tf_estimate``, so this scene is sent now and then, not every step."""
+    frames move with ``/tf`` and ``/tf_estimate``, so this scene is sent now and then, not every step. A real
+    robot (``embodiment: real``) is green, labelled ``<id> real``; grey and ``<id> stale`` while its pose is."""
     entities = []
     for r in sc.robots:
+        body, label = _BODY, str(r.id)
+        if r.embodiment == "real":
+            body, label = (_STALE, f"{r.id} stale") if r.id in stale else (_REAL, f"{r.id} real")
         entities.append(SceneEntity(
             timestamp=ts(ns), frame_id=frame(r.id), id=f"robot-{r.id}", frame_locked=True, metadata=[],
             cylinders=[CylinderPrimitive(pose=pose(0.0, 0.0, 0.0, 0.15), size=Vector3(x=2 * r.radius, y=2 * r.radius, z=0.3),
-                                         bottom_scale=1.0, top_scale=1.0, color=_BODY)],
+                                         bottom_scale=1.0, top_scale=1.0, color=body)],
             arrows=[ArrowPrimitive(pose=pose(0.0, 0.0, 0.0, 0.35), shaft_length=r.radius, shaft_diameter=0.08,
                                    head_length=0.25, head_diameter=0.2, color=_WHITE)],
             texts=[TextPrimitive(pose=pose(0.0, 0.0, 0.0, 0.8), billboard=True, font_size=14.0, scale_invariant=True,
-                                 color=_WHITE, text=str(r.id))]))
+                                 color=_WHITE, text=label)]))
         est = estimates.get(r.id)
         if est is not None:
             sigma = max(math.sqrt(max(est.cov_trace or 0.0, 0.0)), 0.05)

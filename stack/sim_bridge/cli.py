@@ -45,6 +45,12 @@ def cli(argv: list[str] | None = None) -> int:
                     help="real time: how long a robot out of contact may take to come back before it is gone")
     ap.add_argument("--lockstep-timeout", type=float, default=2.0)
     ap.add_argument("--no-stop-early", action="store_true", help="run the whole duration even when the task is done")
+    ap.add_argument("--no-agents", action="store_true",
+                    help="host the robots and their devices without agents of this fleet: wait for none (with "
+                         "--realtime: a stand-in for the real site of a fleet with real robots)")
+    ap.add_argument("--mocap", type=_mocap, action="append", default=[], metavar="ID:KEY[:RATE_HZ[:LATENCY_MS]]",
+                    help="a simulated motion-capture system: robot ID's pose as geometry_msgs/PoseStamped on KEY "
+                         "(default 100 Hz, 0 ms; real time)")
     ap.add_argument("--log-level", default="WARNING")
     ap.add_argument("--zenoh-config", metavar="FILE", help="zenoh json5 config layered under ours (deploy/)")
     ap.add_argument("--allow-remote", action="store_true", help="allow a router endpoint off loopback")
@@ -58,14 +64,23 @@ def cli(argv: list[str] | None = None) -> int:
     try:
         sc = load_scenario(a.scenario)
         endpoint_list(a.connect, a.allow_remote)
+        for m in a.mocap:
+            if m.robot not in sc.ids:
+                raise ScenarioError(f"--mocap: no robot {m.robot} in the scenario")
+        if (a.mocap or a.no_agents) and not a.realtime:
+            raise ScenarioError("--mocap and --no-agents run on the wall clock: add --realtime")
         if a.rejoin_wait < 0:
             raise ScenarioError(f"--rejoin-wait: must be >= 0, got {a.rejoin_wait:g}")
+        real = [r.id for r in sc.robots if r.embodiment == "real"]
+        if real and not a.realtime:
+            raise ScenarioError(f"robots {real} are real (embodiment: real): a fleet with real robots runs in real "
+                                f"time (--realtime); lock-step cannot wait for a real robot's step")
     except (ScenarioError, EndpointError) as e:
         print(f"stack-world: {e}", file=sys.stderr)
         return 2
     cfg = WorldConfig(scenario=sc, connect=a.connect, fleet=a.fleet, out=a.out, realtime=a.realtime, gui=a.gui,
                       wait_agents_s=a.wait_agents, rejoin_wait_s=a.rejoin_wait, lockstep_timeout_s=a.lockstep_timeout, duration=a.duration,
-                      stop_early=not a.no_stop_early, zenoh_config=a.zenoh_config, allow_remote=a.allow_remote,
+                      stop_early=not a.no_stop_early, no_agents=a.no_agents, mocap=a.mocap, zenoh_config=a.zenoh_config, allow_remote=a.allow_remote,
                       device_faults=a.device_fault, faults=[(kind, rid, t) for kind in FAULT_KINDS for rid, t in getattr(a, kind)])
     try:
         return main(cfg)
@@ -73,6 +88,15 @@ def cli(argv: list[str] | None = None) -> int:
         # one line; bad input (a config file, a device the world cannot host) is 2, the rest 1
         print(f"world: {e}", file=sys.stderr)
         return 2 if isinstance(e, (ConfigFileError, DeviceError)) else 1
+
+
+def _mocap(text: str):
+    from .mocap_sim import parse_mocap
+
+    try:
+        return parse_mocap(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def _fault_at(text: str) -> tuple[int, float]:

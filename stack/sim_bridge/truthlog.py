@@ -18,8 +18,9 @@ CHUNK = 600
 
 
 class TruthRows:
-    def __init__(self, spill_dir: Path | None, chunk: int = CHUNK):
-        self.rows: dict[str, list] = {k: [] for k in KEYS}
+    def __init__(self, spill_dir: Path | None, chunk: int = CHUNK, extra: tuple[str, ...] = ()):
+        self.keys = KEYS + extra  # extra: ``wall`` in real time (UNIX s of each row: two worlds' truths side by side)
+        self.rows: dict[str, list] = {k: [] for k in self.keys}
         self.spill_dir, self.chunk = spill_dir, chunk
         self.spilled: list[Path] = []
 
@@ -34,14 +35,14 @@ class TruthRows:
         path = self.spill_dir / f".truth-{len(self.spilled)}.npz"
         np.savez(path, **{k: np.array(v) for k, v in self.rows.items()})
         self.spilled.append(path)
-        self.rows = {k: [] for k in KEYS}
+        self.rows = {k: [] for k in self.keys}
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Every row so far, spilled and held, one array per key."""
-        parts: dict[str, list] = {k: [] for k in KEYS}
+        parts: dict[str, list] = {k: [] for k in self.keys}
         for path in self.spilled:
             with np.load(path) as z:
-                for k in KEYS:
+                for k in self.keys:
                     parts[k].append(z[k])
         for k, v in self.rows.items():
             if v:

@@ -24,6 +24,10 @@ ROBOT_HEIGHT = 0.4
 OBSTACLE_HEIGHT = 1.0
 LIDAR_Z = 0.2
 CULL_MARGIN = 0.05  # [m] added around every body when culling beams
+IN_SITE, VIRTUAL = 1, 2
+"""Collision groups, with real robots in the fleet: bodies that stand in the real site (real robots, obstacles not
+marked virtual), which a real lidar sees for itself; and bodies only the world has (simulated robots, virtual
+obstacles), which a virtual scan casts against (``virtual_scan``). Simulated lidars see both."""
 
 
 class World:
@@ -52,6 +56,12 @@ class World:
         self.odo_pose = np.column_stack([self.x, self.y, self.yaw]).astype(float)
         self.obstacle_bodies = [self._add_obstacle(o) for o in scenario.obstacles]
         self.robot_bodies = [self._add_robot(r) for r in scenario.robots]
+        self.mixed = any(r.embodiment == "real" for r in scenario.robots)
+        if self.mixed:
+            for b, o in zip(self.obstacle_bodies, scenario.obstacles):
+                self._group(b, VIRTUAL if o.virtual else IN_SITE)
+            for b, r in zip(self.robot_bodies, scenario.robots):
+                self._group(b, IN_SITE if r.embodiment == "real" else VIRTUAL)
         self._sync_bodies()
         self._ray_setup()
         aabbs = [p.getAABB(b, physicsClientId=self.cid) for b in self.obstacle_bodies]
@@ -73,12 +83,37 @@ class World:
         vis = p.createVisualShape(p.GEOM_BOX, halfExtents=[hx, hy, OBSTACLE_HEIGHT / 2], rgbaColor=[0.8, 0.3, 0.2, 1], physicsClientId=c)
         return p.createMultiBody(0, shape, vis, [cx, cy, OBSTACLE_HEIGHT / 2], p.getQuaternionFromEuler([0, 0, yaw]), physicsClientId=c)
 
-    def _add_robot(self, r) -> int:
-        c = self.cid
-        shape = p.createCollisionShape(p.GEOM_SPHERE, radius=r.radius, physicsClientId=c)  # see _add_obstacle
-        vis = p.createVisualShape(p.GEOM_CYLINDER, radius=r.radius, length=ROBOT_HEIGHT, rgbaColor=[0.2, 0.4, 0.9, 1],
+    def _add_robot(self, r, radius: float | None = None) -> int:
+        c, radius = self.cid, r.radius if radius is None else radius
+        shape = p.createCollisionShape(p.GEOM_SPHERE, radius=radius, physicsClientId=c)  # see _add_obstacle
+        vis = p.createVisualShape(p.GEOM_CYLINDER, radius=radius, length=ROBOT_HEIGHT, rgbaColor=[0.2, 0.4, 0.9, 1],
                                   visualFramePosition=[0, 0, ROBOT_HEIGHT / 2 - LIDAR_Z], physicsClientId=c)
         return p.createMultiBody(0, shape, vis, [r.pose[0], r.pose[1], LIDAR_Z], physicsClientId=c)
+
+    def _group(self, body: int, group: int) -> None:
+        p.setCollisionFilterGroupMask(body, -1, group, IN_SITE | VIRTUAL, physicsClientId=self.cid)
+
+    def set_radius(self, rid: int, radius: float) -> None:
+        """Robot ``rid``'s body as a disc of ``radius`` (a real robot whose pose went stale grows by what it could
+        have driven since: the simulated robots' lidars and guards give it that berth)."""
+        i = self.index[rid]
+        if radius == self.radii[i]:
+            return
+        r = self.sc.robots[i]
+        p.removeBody(self.robot_bodies[i], physicsClientId=self.cid)
+        self.robot_bodies[i] = self._add_robot(r, radius)
+        if self.mixed:
+            self._group(self.robot_bodies[i], IN_SITE if r.embodiment == "real" else VIRTUAL)
+        self.radii[i] = radius
+        self._sync_body(i)
+
+    def place(self, rid: int, x: float, y: float, yaw: float, v: float, w: float) -> None:
+        """A robot the world does not move (a real one) is where its pose source says, at that speed."""
+        i = self.index[rid]
+        self.x[i], self.y[i], self.yaw[i], self.v[i], self.w[i] = x, y, yaw, v, w
+        self.odo_pose[i] = (x, y, yaw)
+        self.wl[i] = self.wr[i] = 0.0
+        self._sync_body(i)
 
     def _ray_setup(self) -> None:
         """Per robot: beam angles (robot frame), start offset (outside its own body) and range."""
@@ -192,15 +227,17 @@ class World:
         froms = np.column_stack([x + r0 * c, y + r0 * s, z])
         return m, froms, np.column_stack([x + lid.range * c, y + lid.range * s, z])
 
-    def _cast(self, froms: list[np.ndarray], tos: list[np.ndarray]) -> np.ndarray:
-        """Hit fractions of the rays (1: no hit), by ``rayTestBatch`` in batches."""
+    def _cast(self, froms: list[np.ndarray], tos: list[np.ndarray], mask: int = -1) -> np.ndarray:
+        """Hit fractions of the rays (1: no hit), by ``rayTestBatch`` in batches; ``mask``: the collision groups
+        the rays hit (default all)."""
         F = np.concatenate(froms) if froms else np.zeros((0, 3))
         T = np.concatenate(tos) if tos else np.zeros((0, 3))
         fracs = np.ones(len(F))
         batch = p.MAX_RAY_INTERSECTION_BATCH_SIZE - 1
         for s0 in range(0, len(F), batch):
             # numpy arrays as they are (pybullet reads them directly: a third cheaper than lists of floats here)
-            res = p.rayTestBatch(F[s0:s0 + batch], T[s0:s0 + batch], numThreads=1, physicsClientId=self.cid)
+            res = p.rayTestBatch(F[s0:s0 + batch], T[s0:s0 + batch], numThreads=1, collisionFilterMask=mask,
+                                 physicsClientId=self.cid)
             fracs[s0:s0 + len(res)] = [h[2] if h[0] >= 0 else 1.0 for h in res]
         self.rays_cast += len(F)
         return fracs
@@ -270,6 +307,15 @@ class World:
             if moved:
                 self._sync_body(i)
         return self._ranges(i, m, fracs, self._noise(i, self._cast_rng(i), ang.size))
+
+    def virtual_scan(self, rid: int) -> np.ndarray:
+        """Real robot ``rid``'s lidar beams (its configured layout, from its body's centre, where its pose source
+        put it) cast against the virtual bodies only, without noise: what its real lidar would see of the robots and
+        obstacles that exist only here. No hit reads the lidar's range."""
+        i = self.index[rid]
+        ang = self.beam_angles[i]
+        m, froms, tos = self._rays(i, self.x[i], self.y[i], self.yaw[i], ang, np.ones(ang.size, bool))
+        return self._ranges(i, m, self._cast([froms], [tos], mask=VIRTUAL), None)
 
     def _cast_rng(self, i: int) -> np.random.Generator:
         if i not in self._cast_rngs:

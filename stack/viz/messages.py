@@ -28,7 +28,8 @@ TOPICS = {
     "robots": "/scene/robots", "slots": "/formation/slots", "links": "/comm/links", "metrics": "/metrics",
     "events": "/events",
 }
-ROBOT_TOPICS = ("pose", "estimate", "scan", "cmd_vel", "state", "diag")
+ROBOT_TOPICS = ("pose", "estimate", "scan", "cmd_vel", "state", "diag", "virtual_scan")
+"""``virtual_scan``: a real robot's virtual returns (``robot.lidar.virtual``), apart from its scan."""
 LINK_COLORS = {"delivered": (0.1, 0.7, 0.2), "dropped_loss": (1.0, 0.6, 0.0), "dropped_range": (0.9, 0.1, 0.1)}
 
 
@@ -118,6 +119,8 @@ _WHITE = Color(r=1.0, g=1.0, b=1.0, a=1.0)
 _BODY = Color(r=0.15, g=0.4, b=0.85, a=0.8)
 _ESTIMATE = Color(r=1.0, g=0.85, b=0.1, a=0.35)
 _SLOT = Color(r=0.2, g=0.9, b=0.9, a=0.4)
+_REAL = Color(r=0.1, g=0.75, b=0.3, a=0.9)  # a real robot's body (where its pose source puts it)
+_STALE = Color(r=0.5, g=0.5, b=0.5, a=0.5)  # ... whose pose source went stale
 
 
 def _replace_all(ns: int, entities: list[SceneEntity]) -> SceneUpdate:
@@ -163,8 +166,9 @@ def laser_scan(m: Scan, ns: int, frame_id: str | None = None) -> LaserScan:
 def obstacles_scene(sc: Scenario, ns: int) -> SceneUpdate:
     """Cylinders, boxes and walls (1 m tall), one entity each, in the world frame."""
     entities = []
-    grey = _color((0.55, 0.35, 0.3), 0.9)
+    solid, virtual = _color((0.55, 0.35, 0.3), 0.9), _color((0.6, 0.4, 0.9), 0.45)  # virtual: only in the world
     for i, o in enumerate(sc.obstacles):
+        grey = virtual if o.virtual else solid
         if o.type == "cylinder":
             kw = {"cylinders": [CylinderPrimitive(pose=pose(o.x, o.y, 0.0, 0.5), bottom_scale=1.0, top_scale=1.0,
                                                   size=Vector3(x=2 * o.radius, y=2 * o.radius, z=1.0), color=grey)]}

@@ -1,0 +1,129 @@
+"""Mixed reality without a real robot: a stand-in for the real site, for tests and ``bench/mixed_bench.py``.
+
+A fleet with real robots (``robots[i].embodiment: real``) needs them to be somewhere. Here that somewhere
+is a second world process of ours that the fleet's world does not know (``stack-world --no-agents
+--realtime`` on the scenario :func:`reality_scenario` writes): it hosts each real robot as the simulated
+device behind its driver (a hardware-like Jackal: its own odom frame, rates, clock, drops) in the obstacles
+that stand in the site (those not marked ``virtual``), and nothing else. The real robot's agent runs
+``--driver jackal`` against it as it would against the robot; ``--mocap`` adds a motion-capture system.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+SITE_FLEET = "site"
+"""The stand-in site's fleet name (its keys: ``stack/site/...``; its Jackals: ``jackal/site/robot<id>``)."""
+
+
+def reality_scenario(raw: dict[str, Any], fleet: str = SITE_FLEET) -> dict[str, Any]:
+    """The stand-in site of the scenario ``raw`` (parsed YAML): its real robots, simulated on their own drivers'
+    devices (not their agents: those join the fleet), and its obstacles that are not virtual; each robot's goal is
+    where it starts (the site runs until stopped: ``--no-stop-early``)."""
+    out = copy.deepcopy(raw)
+    out["name"] = f"{raw.get('name', 'scenario')}-site"
+    robots = [r for r in out["robots"] if r.get("embodiment") == "real"]
+    if not robots:
+        raise ValueError("the scenario has no real robot (robots[i].embodiment: real)")
+    for r in robots:
+        for key in ("embodiment", "pose_source", "role"):
+            r.pop(key, None)
+        r["goal"] = list(r["pose"][:2])
+        lidar = r.get("lidar")
+        if isinstance(lidar, dict):
+            for key in ("virtual", "virtual_timeout", "virtual_lost_speed"):
+                lidar.pop(key, None)
+        driver = r.get("driver")
+        if isinstance(r.get(driver), dict):  # the device picks its own namespace under this fleet
+            r[driver] = {k: v for k, v in r[driver].items() if k != "namespace"}
+    out["robots"] = robots
+    defaults = out.get("robot")
+    if isinstance(defaults, dict) and isinstance(defaults.get("lidar"), dict):
+        for key in ("virtual", "virtual_timeout", "virtual_lost_speed"):
+            defaults["lidar"].pop(key, None)
+    obstacles = ((out.get("world") or {}).get("obstacles")) or []
+    out["world"] = {"obstacles": [o for o in obstacles if not o.get("virtual")]}
+    out.pop("formation", None)
+    out["coordination"] = "arrival_time"
+    return out
+
+
+def site_namespace(robot_id: int, fleet: str = SITE_FLEET) -> str:
+    """Where the stand-in site's Jackal ``robot_id`` is on Zenoh (its ``jackal.namespace`` in the fleet)."""
+    return f"jackal/{fleet}/robot{robot_id}"
+
+
+class Site:
+    """The stand-in site as a process (``stack-world --no-agents --realtime`` on :func:`reality_scenario`), on the
+    router at ``endpoint``; its truth (``truth.npz``, with each row's wall time) in ``out`` once it stops."""
+
+    def __init__(self, raw: dict[str, Any], out: Path, endpoint: str, *, mocap: tuple[str, ...] = (),
+                 duration: float = 600.0, fleet: str = SITE_FLEET):
+        self.raw, self.out, self.endpoint, self.mocap, self.duration, self.fleet = raw, out, endpoint, mocap, duration, fleet
+        self.proc: subprocess.Popen | None = None
+
+    def __enter__(self) -> "Site":
+        self.out.mkdir(parents=True, exist_ok=True)
+        path = self.out / "site.yaml"
+        path.write_text(yaml.safe_dump(reality_scenario(self.raw, self.fleet), sort_keys=False))
+        argv = [sys.executable, "-m", "stack.sim_bridge", "--scenario", str(path), "--connect", self.endpoint,
+                "--fleet", self.fleet, "--realtime", "--no-agents", "--no-stop-early", "--out", str(self.out),
+                "--duration", f"{self.duration:g}"]
+        for m in self.mocap:
+            argv += ["--mocap", m]
+        log = open(self.out / "site.log", "w")  # noqa: SIM115 - the child holds it
+        self.proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+        deadline = time.monotonic() + 60.0
+        while not (self.out / "devices.json").exists():  # its devices are up
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError(f"the stand-in site did not come up: {(self.out / 'site.log').read_text()[-400:]}")
+            time.sleep(0.05)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+    def truth(self) -> dict[str, np.ndarray]:
+        with np.load(self.out / "truth.npz") as z:
+            return {k: z[k] for k in z.files}
+
+
+def judge(sc, fleet_truth: dict[str, np.ndarray], site_truth: dict[str, np.ndarray]) -> dict[str, Any]:
+    """A mixed run judged on both worlds' truth: each real robot where the site had it (not its estimate), each
+    simulated robot where the fleet's world had it, matched by wall time. The least centre distance between a real
+    and a simulated robot less their radii (< 0: they touched), the real robots' final distances to their goals
+    (the formation's for a leader), and their estimate's error against the site's truth (RMS, m)."""
+    real = [r for r in sc.robots if r.embodiment == "real"]
+    fleet_ids, site_ids = [int(i) for i in fleet_truth["ids"]], [int(i) for i in site_truth["ids"]]
+    tw = fleet_truth["wall"]
+    out: dict[str, Any] = {"clearance_m": {}, "goal_error_m": {}, "estimate_error_rms_m": {}}
+    for r in real:
+        j = site_ids.index(r.id)
+        sx = np.interp(tw, site_truth["wall"], site_truth["x"][:, j])
+        sy = np.interp(tw, site_truth["wall"], site_truth["y"][:, j])
+        jf = fleet_ids.index(r.id)
+        out["estimate_error_rms_m"][str(r.id)] = float(np.sqrt(np.mean(
+            (fleet_truth["x"][:, jf] - sx) ** 2 + (fleet_truth["y"][:, jf] - sy) ** 2)))
+        gaps = [np.hypot(fleet_truth["x"][:, fleet_ids.index(o.id)] - sx, fleet_truth["y"][:, fleet_ids.index(o.id)] - sy)
+                - r.radius - o.radius for o in sc.robots if o.embodiment == "simulated"]
+        out["clearance_m"][str(r.id)] = float(np.min(gaps)) if gaps else None
+        goal = r.goal if r.goal is not None else (sc.formation.goal if sc.formation and sc.formation.leader == r.id else None)
+        if goal is not None:
+            out["goal_error_m"][str(r.id)] = float(np.hypot(sx[-1] - goal[0], sy[-1] - goal[1]))
+    return out
