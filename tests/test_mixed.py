@@ -15,15 +15,16 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import ROOT, run_cli, wait_port, write_scenario
+from conftest import ROOT, run_cli, wait_for, wait_port, write_scenario
 
 from stack.comm.session import free_tcp_endpoint
-from stack.fleet.mixed import Site, judge, reality_scenario, site_namespace
+from stack.fleet.mixed import Site, reality_scenario, run_mixed, site_namespace
 from stack.scenario import ScenarioError, parse_scenario
 from stack.viz.messages import TOPICS
 
 pytestmark = pytest.mark.fleet
 
+MOCAP_KEY = "vrpn_mocap/site_robot0/pose"
 REAL = {"embodiment": "real", "driver": "jackal", "jackal": {"namespace": site_namespace(0)}}
 
 
@@ -35,10 +36,11 @@ def mixed_diamond() -> dict:
                                 {"type": "cylinder", "x": 4.0, "y": -4.0, "radius": 0.5, "virtual": True}]},
         "robot": {"radius": 0.3, "v_max": 0.8, "w_max": 1.5, "comm_range": 15.0,
                   "lidar": {"beams": 180, "fov_deg": 180, "range": 5.0}},
-        "formation": {"leader": 0, "goal": [6.0, 0.0],
+        "formation": {"leader": 0, "goal": [7.0, -0.5],
                       "slots": {1: {"L": 2.0, "psi_deg": 135}, 2: {"L": 2.0, "psi_deg": 180},
                                 3: {"L": 2.0, "psi_deg": -135}}},
-        "robots": [{"id": 0, "role": "leader", "pose": [0.0, 0.0, 0.0], **REAL, "lidar": {"virtual": True}},
+        # booted away from the site origin: its odometry is (0, 0, 0) at (1.0, -0.5, 20 deg)
+        "robots": [{"id": 0, "role": "leader", "pose": [1.0, -0.5, 20.0], **REAL, "lidar": {"virtual": True}},
                    {"id": 1, "role": "follower", "pose": [-1.4, 1.4, 0.0]},
                    {"id": 2, "role": "follower", "pose": [-2.0, 0.0, 0.0]},
                    {"id": 3, "role": "follower", "pose": [-1.4, -1.4, 0.0]}],
@@ -96,31 +98,18 @@ def router(tmp_path):
 
 def test_a_real_jackal_and_three_simulated_robots_finish_the_formation_judged_on_both_worlds(tmp_path, router):
     raw = mixed_diamond()
-    path = write_scenario(tmp_path / "mixed.yaml", raw)
-    with Site(raw, tmp_path / "site", router) as site:
-        fleet = _popen(["stack-fleet", "run", str(path), "--realtime", "--connect", router, "--fleet", "mx",
-                        "--out", str(tmp_path / "run"), "--no-progress", "--no-plots"], tmp_path / "fleet.log")
-        agent = _popen(["stack-agent", "--id", "0", "--scenario", str(path), "--connect", router, "--fleet", "mx"],
-                       tmp_path / "agent0.log")
-        try:
-            fleet.wait(120)
-        finally:
-            _stop(agent)
-            _stop(fleet)
-    log = (tmp_path / "fleet.log").read_text()
-    rep = json.loads((tmp_path / "run" / "report.json").read_text())
-    assert rep["success"] and rep["crashed"] == [], log[-2000:]
+    got = run_mixed(raw, tmp_path, router, fleet="mx")
+    rep, j = got["report"], got["judge"]
+    assert rep["success"] and rep["crashed"] == [], (tmp_path / "fleet.log").read_text()[-2000:]
     assert rep["collisions"] == {"robot_robot": 0, "robot_obstacle": 0}
     mixed = rep["mixed"]
     assert mixed["real_robots"] == [0] and mixed["truth_from_estimate"] == [0] and mixed["pose_stale"] == []
     assert mixed["virtual_scans_sent"]["0"] > 50 and mixed["virtual_returns"]["0"]["merged_returns"] > 0
+    assert rep["network"]["held_steps"].get("0", 0) > 0  # the real robot held (no-world) until the world ran
     sc = parse_scenario(raw, "mixed.yaml")
-    with np.load(tmp_path / "run" / "truth.npz") as z:
-        fleet_truth = {k: z[k] for k in z.files}
-    j = judge(sc, fleet_truth, site.truth())
     assert j["clearance_m"]["0"] > 0.0, j  # the real robot never touched a simulated one, on the site's truth
     assert j["goal_error_m"]["0"] <= sc.success.goal_tolerance, j
-    assert j["estimate_error_rms_m"]["0"] < 0.15, j
+    assert j["estimate_error_rms_m"]["0"] < 0.15 and j["formation_error_rms_m"] < 0.5, j
     # the recording: the virtual returns on their own channel, the real robot drawn as real; in the real viewer
     from mcap.reader import make_reader
 
@@ -138,14 +127,17 @@ def test_a_real_jackal_and_three_simulated_robots_finish_the_formation_judged_on
     assert {"/robot_0/virtual_scan", TOPICS["robots"], "/robot_1/scan"} <= listed, sorted(listed)
 
 
-def _parked_run(tmp_path: Path, router: str, virtual: bool, kill_at: float | None, run_s: float):
+def _parked_run(tmp_path: Path, router: str, virtual: bool, kill_at: float | None, run_s: float,
+                mocap: tuple[float, float] | None = None):
     """The parked scenario: the fleet's world and the parked robot's agent, the site and the real robot's agent (its
-    step log); the world SIGKILLed ``kill_at`` s after the real robot's first step. Returns (records, kill wall
-    time, the fleet world's truth)."""
+    step log); the world SIGKILLed ``kill_at`` s after the real robot's first step; ``mocap`` (rate Hz, latency ms):
+    the real robot's pose from the site's motion capture. Returns (records, kill wall time, the fleet's truth)."""
     raw = parked(virtual)
+    if mocap is not None:
+        raw["robots"][0]["pose_source"] = {"key": MOCAP_KEY}
     path = write_scenario(tmp_path / "parked.yaml", raw)
     steps = tmp_path / "steps-0.jsonl"
-    with Site(raw, tmp_path / "site", router):
+    with Site(raw, tmp_path / "site", router, mocap=() if mocap is None else (f"0:{MOCAP_KEY}:{mocap[0]}:{mocap[1]}",)):
         world = _popen(["stack-world", "--scenario", str(path), "--connect", router, "--fleet", "pk", "--realtime",
                         "--out", str(tmp_path / "run"), "--no-stop-early"], tmp_path / "world.log")
         agents = [_popen(["stack-agent", "--id", str(i), "--scenario", str(path), "--connect", router, "--fleet", "pk",
@@ -173,7 +165,7 @@ def _parked_run(tmp_path: Path, router: str, virtual: bool, kill_at: float | Non
 
 
 def test_a_real_robot_avoids_a_virtual_robot_it_sees_only_merged_and_slows_when_the_world_is_lost(tmp_path, router):
-    recs, killed, _ = _parked_run(tmp_path, router, virtual=True, kill_at=9.0, run_s=14.0)
+    recs, killed, _ = _parked_run(tmp_path, router, virtual=True, kill_at=8.0, run_s=12.0)
     sc = parse_scenario(parked(True), "parked.yaml")
     lid, r0, r1 = sc.robots[0].lidar, sc.robots[0].radius, sc.robots[1].radius
     before = [r for r in recs if r["now"] < killed]
@@ -190,10 +182,14 @@ def test_a_real_robot_avoids_a_virtual_robot_it_sees_only_merged_and_slows_when_
 
 
 def test_without_the_merge_the_real_robot_drives_into_the_virtual_one(tmp_path, router):
-    _, _, truth = _parked_run(tmp_path, router, virtual=False, kill_at=None, run_s=8.0)
+    # its pose from a motion-capture system this time (30 Hz, 50 ms late): the world places the body where it says
+    _, _, truth = _parked_run(tmp_path, router, virtual=False, kill_at=None, run_s=7.0, mocap=(30, 50))
     sc = parse_scenario(parked(False), "parked.yaml")
     d = np.hypot(truth["x"][:, 0] - truth["x"][:, 1], truth["y"][:, 0] - truth["y"][:, 1])
     assert d.min() < sc.robots[0].radius + sc.robots[1].radius  # the control case: the merge is what avoids it
+    world = json.loads((tmp_path / "run" / "world.json").read_text())
+    assert world["pose_sources"] == {"0": MOCAP_KEY} and world["poses_received"]["0"] > 100, world
+    assert truth["x"][-1, 0] > 2.2  # it drove on through
 
 
 def test_the_world_sees_a_real_robot_and_casts_virtual_scans_against_virtual_bodies_only():
@@ -223,6 +219,79 @@ def test_the_world_sees_a_real_robot_and_casts_virtual_scans_against_virtual_bod
         assert w.lidar([1])[1][len(sim) // 2] == pytest.approx(3.0 - 0.8, abs=0.02)
     finally:
         w.close()
+
+
+def test_a_real_robot_whose_pose_goes_stale_is_grown_marked_and_casts_nothing(router):
+    from stack.comm import Keys, encode
+    from stack.comm.messages import State
+    from stack.comm.session import SessionConfig, open_session
+    from stack.fleet.viz_messages import robots_scene
+    from stack.sim_bridge.real_robots import STALE_GROWTH_MAX_M, RealRobots
+    from stack.sim_bridge.world import World
+
+    sc = parse_scenario(parked(True), "parked.yaml")
+    r0 = sc.robots[0]
+    w, now, keys = World(sc), [100.0], Keys("stale")
+    heard: list = []
+    try:
+        with open_session(SessionConfig(mode="client", connect=[router])) as s:
+            real = RealRobots(w, sc, s, keys, clock=lambda: now[0])
+            sub = s.declare_subscriber(keys.robot(0, "virtual_scan"), heard.append)
+            pubs = {0: s.declare_publisher(keys.robot(0, "virtual_scan"))}
+            state = s.declare_publisher(keys.robot(0, "state"))
+            state.put(b"\x93not a state")  # counted per key, never taken
+            state.put(encode(State(id=0, role="peer", seq=1, stamp=0.0, x=1.0, y=0.5, yaw=0.2, v=0.3, w=0.0)))
+            assert wait_for(lambda: not real.waiting_for(), 5.0)
+            assert real.place(0.0) == [] and (w.x[0], w.y[0], w.radii[0]) == (1.0, 0.5, r0.radius)
+            real.publish_virtual(pubs, 0, 0.0, [])
+            assert wait_for(lambda: len(heard) == 1, 5.0)
+            now[0] += r0.pose_source.stale_after_s + 0.5  # 0.5 s past: it may have driven v_max * 0.5
+            assert real.place(1.0) == [0] and w.radii[0] == pytest.approx(r0.radius + r0.v_max * 0.5)
+            real.publish_virtual(pubs, 1, 1.0, [0])  # from a pose nobody trusts: nothing
+            now[0] += 100.0
+            assert real.place(2.0) == [0] and w.radii[0] == pytest.approx(r0.radius + STALE_GROWTH_MAX_M)
+            assert "0 stale" in str(robots_scene(sc, {}, 0, {0}))
+            state.put(encode(State(id=0, role="peer", seq=2, stamp=0.0, x=1.5, y=0.5, yaw=0.2, v=0.3, w=0.0)))
+            assert wait_for(lambda: real.poses[0] == 2, 5.0)
+            assert real.place(3.0) == [] and (w.x[0], w.radii[0]) == (1.5, r0.radius)
+            time.sleep(0.3)
+            assert len(heard) == 1
+            rep = real.report()
+            sub.undeclare()
+            real.close()
+    finally:
+        w.close()
+    assert rep["pose_stale"] == [{"robot": 0, "start": 1.0, "end": 3.0}] and rep["virtual_scans_sent"] == {"0": 1}
+    assert rep["pose_malformed"] == {keys.robot(0, "state"): 1}
+
+
+def test_a_motion_capture_pose_source_moves_the_body_at_the_speed_its_stamps_give(router):
+    from stack.comm import Keys
+    from stack.comm.session import SessionConfig, open_session
+    from stack.drivers.ros2cdr import encode_pose_stamped
+    from stack.sim_bridge.real_robots import RealRobots
+    from stack.sim_bridge.world import World
+
+    raw = parked(True)
+    raw["robots"][0]["pose_source"] = {"key": "vrpn_mocap/speed/pose"}
+    sc = parse_scenario(raw, "parked.yaml")
+    w = World(sc)
+    try:
+        with open_session(SessionConfig(mode="client", connect=[router])) as s:
+            real = RealRobots(w, sc, s, Keys("speed"))
+            pub = s.declare_publisher("vrpn_mocap/speed/pose")
+            pub.put(b"\x00\x01\x00\x00garbage")  # counted, never taken
+            # a burst, as a 100 Hz system's samples come: arrival times say nothing, the capture stamps do
+            for k, stamp in enumerate((10.00, 10.01, 10.01, 10.02)):
+                pub.put(encode_pose_stamped(stamp, 1.0 + 0.005 * min(k, 2) + 0.005 * (k == 3), 0.0, 0.0))
+            assert wait_for(lambda: real.poses[0] == 4, 5.0)
+            real.place(0.0)
+            assert w.x[0] == pytest.approx(1.015) and w.v[0] == pytest.approx(0.5)
+            rep = real.report()
+            real.close()
+    finally:
+        w.close()
+    assert rep["pose_sources"] == {"0": "vrpn_mocap/speed/pose"} and rep["pose_malformed"] == {"vrpn_mocap/speed/pose": 1}
 
 
 def test_the_stand_in_site_has_the_real_robots_and_the_obstacles_that_are_not_virtual():

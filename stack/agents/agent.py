@@ -156,6 +156,8 @@ class Agent:
         self.lidar: Lidar | None = self._make_lidar()
         # a real robot's view of the virtual ones (robot.lidar.virtual): the world's virtual returns, merged
         self.virtual = VirtualReturns(self.robot) if self.robot.embodiment == "real" and self.robot.lidar.virtual else None
+        # a real robot in a fleet with simulated robots holds (its estimate still published) until the world runs
+        self._await_world = self.robot.embodiment == "real" and any(r.embodiment == "simulated" for r in sc.robots)
         self._lidar_sync: tuple[int, int] | None = None  # lock-step: (device scans, scans we had) at our first step
         self._lidar_wait: tuple[int, float] | None = None  # lock-step: (step, wall deadline) of a wait for scans
         self._lidar_taken = (0, None)  # lock-step: (lidar_n, sim time) when a new scan was last taken
@@ -570,6 +572,8 @@ class Agent:
             wc = self._in.world_clock
             t_run = wc[0] + (now - wc[1]) if wc is not None else now
             dead, scan_t = frozenset(self._in.dead), self._in.scan_t
+            if held is None and self._await_world and wc is None:  # the simulated robots have not started yet
+                held = "no-world"
         return StepInputs(step=self.step + 1, t=now, t_run=t_run, now=time.time(), odometry=odometry, scan=scan,
                           scan_t=scan_t, fixes=fixes, states=states, dead=dead, held=held)
 

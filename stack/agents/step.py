@@ -210,14 +210,15 @@ class StepPipeline:
                 self.held_steps += 1
             elif dec.obs is not None and stale is None:
                 v, w = self._guarded(*self._act(dec, inp.t_run), inp)
-        self._note_led(inp.t_run, self.role == "leader" and situation not in ("no-network", "no-quorum"))
+        self._note_led(inp.t_run, self.role == "leader" and situation not in ("no-network", "no-quorum", "no-world"))
         d_goal = float(obs.d_g) if situation == "peer" and obs is not None else None
         return StepOutput(v=v, w=w, pose=pose, situation=situation, cov_trace=self.estimator.cov_trace,
                           d_goal=d_goal, stale=stale, target=target)
 
     def _held_why(self, inp: StepInputs) -> str | None:
-        """``"no-network"`` (the session lost its routers), ``"no-quorum"`` (a leader whose side of a partition is not
-        a quorum: ``quorum``), or None: the step drives."""
+        """``"no-network"`` (the session lost its routers), ``"no-world"`` (a real robot before its mixed fleet's
+        world runs), ``"no-quorum"`` (a leader whose side of a partition is not a quorum: ``quorum``), or None: the
+        step drives."""
         if inp.held is not None:
             return inp.held
         if self.role == "leader" and not self.membership.quorum:

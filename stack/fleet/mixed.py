@@ -11,6 +11,7 @@ that stand in the site (those not marked ``virtual``), and nothing else. The rea
 from __future__ import annotations
 
 import copy
+import json
 import os
 import signal
 import subprocess
@@ -91,13 +92,8 @@ class Site:
         return self
 
     def __exit__(self, *exc) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(30)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+        if self.proc is not None:
+            _terminate(self.proc)
 
     def truth(self) -> dict[str, np.ndarray]:
         with np.load(self.out / "truth.npz") as z:
@@ -126,4 +122,66 @@ def judge(sc, fleet_truth: dict[str, np.ndarray], site_truth: dict[str, np.ndarr
         goal = r.goal if r.goal is not None else (sc.formation.goal if sc.formation and sc.formation.leader == r.id else None)
         if goal is not None:
             out["goal_error_m"][str(r.id)] = float(np.hypot(sx[-1] - goal[0], sy[-1] - goal[1]))
+        fleet_truth = dict(fleet_truth, x=fleet_truth["x"].copy(), y=fleet_truth["y"].copy())
+        fleet_truth["x"][:, jf], fleet_truth["y"][:, jf] = sx, sy  # from here on: the real robot where it was
+    out["formation_error_rms_m"] = formation_error_rms(sc, fleet_truth)
     return out
+
+
+def formation_error_rms(sc, truth: dict[str, np.ndarray]) -> float | None:
+    """RMS over followers and steps of |position - slot| (INTERFACES.md section 3), the slots placed on the leader's
+    true position (eq. (3), the final slots); None without a formation."""
+    from ..models.geometry import slot_position
+
+    f = sc.formation
+    if f is None:
+        return None
+    ids = [int(i) for i in truth["ids"]]
+    li = ids.index(f.leader)
+    err = [np.hypot(*(np.array(slot_position((truth["x"][k, li], truth["y"][k, li]), slot))
+                      - [truth["x"][k, ids.index(rid)], truth["y"][k, ids.index(rid)]]))
+           for rid, slot in f.final_slots.items() for k in range(len(truth["t"]))]
+    return float(np.sqrt(np.mean(np.square(err))))
+
+
+def run_mixed(raw: dict[str, Any], out: Path, endpoint: str, *, mocap: tuple[str, ...] = (), fleet: str = "mixed",
+              timeout_s: float = 180.0) -> dict[str, Any]:
+    """One mixed run on the router at ``endpoint``: the stand-in site (with ``mocap``), ``stack-fleet run --realtime``
+    for the simulated robots, and each real robot's own ``stack-agent`` (as on the robot). Returns the fleet's report
+    and :func:`judge`'s verdict on both worlds' truth (``{"report": ..., "judge": ...}``); the logs are in ``out``."""
+    from ..scenario import parse_scenario
+
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "mixed.yaml"
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    sc = parse_scenario(raw, str(path))
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+
+    def start(args: list[str], log: str) -> subprocess.Popen:
+        return subprocess.Popen([sys.executable, "-m", *args], stdout=open(out / log, "w"),  # noqa: SIM115
+                                stderr=subprocess.STDOUT, env=env)
+
+    with Site(raw, out / "site", endpoint, mocap=mocap) as site:
+        run = start(["stack.fleet", "run", str(path), "--realtime", "--connect", endpoint, "--fleet", fleet,
+                     "--out", str(out / "run"), "--no-progress", "--no-plots"], "fleet.log")
+        agents = [start(["stack.agents", "--id", str(r.id), "--scenario", str(path), "--connect", endpoint,
+                         "--fleet", fleet], f"agent{r.id}.log") for r in sc.robots if r.embodiment == "real"]
+        try:
+            run.wait(timeout_s)
+        finally:
+            for p in [*agents, run]:  # each agent stops its robot (zero velocity) on SIGTERM
+                _terminate(p)
+    report = json.loads((out / "run" / "report.json").read_text())
+    with np.load(out / "run" / "truth.npz") as z:
+        fleet_truth = {k: z[k] for k in z.files}
+    return {"report": report, "judge": judge(sc, fleet_truth, site.truth())}
+
+
+def _terminate(p: subprocess.Popen) -> None:
+    if p.poll() is None:
+        p.send_signal(signal.SIGTERM)
+        try:
+            p.wait(20)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()

@@ -50,6 +50,8 @@ class RealRobots:
         self._lock = threading.Lock()
         self.latest: dict[int, tuple[float, float, float, float, float, float]] = {}  # id -> x, y, yaw, v, w, arrival
         self.poses: Counter[int] = Counter()
+        self._stamps: dict[int, float] = {}  # motion capture: the newest pose's capture stamp
+        self._speed: dict[int, tuple[float, float]] = {}  # motion capture: (v, w) from the last two poses
         self.malformed: Counter[str] = Counter()
         self.stale_since: dict[int, float] = {}  # id -> sim time its pose went stale
         self.stale_spans: list[dict] = []  # {"robot", "start", "end"} in sim time
@@ -78,17 +80,21 @@ class RealRobots:
 
     def _on_pose(self, rid: int, sample: zenoh.Sample) -> None:
         try:
-            _, x, y, yaw = decode_pose_stamped(sample.payload.to_bytes())
+            stamp, x, y, yaw = decode_pose_stamped(sample.payload.to_bytes())
         except CdrError:
             return self._bad(str(sample.key_expr))
         with self._lock:
-            prev = self.latest.get(rid)
-        v = w = 0.0
-        if prev is not None:  # the body's speed, for the truth and the report: from the last two poses
-            dt = self.clock() - prev[5]
-            if dt > 1e-3:
-                v = math.hypot(x - prev[0], y - prev[1]) / dt
-                w = math.remainder(yaw - prev[2], math.tau) / dt
+            prev, (v, w) = self.latest.get(rid), self._speed.get(rid, (0.0, 0.0))
+            last = self._stamps.get(rid)
+            self._stamps[rid] = stamp
+        # the body's speed (the truth's, the world's settle check): from the last two poses by their capture stamps,
+        # not their arrival (samples come in bursts); two with one stamp keep the speed as it was
+        if prev is not None and last is not None and stamp - last > 1e-4:
+            dt = stamp - last
+            v = math.hypot(x - prev[0], y - prev[1]) / dt
+            w = math.remainder(yaw - prev[2], math.tau) / dt
+            with self._lock:
+                self._speed[rid] = (v, w)
         self._took(rid, (x, y, yaw, v, w))
 
     def _took(self, rid: int, pose: tuple[float, float, float, float, float]) -> None:
