@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-$(shell cksum pyproject.toml | cut -d' ' -f1)
 
-.PHONY: demo test bench core-check clean screenshots golden
+.PHONY: demo test bench core-check clean screenshots golden docs docs-serve figures
 
 $(STAMP): pyproject.toml
 	@# the viewer tests drive Lichtblick in Debian's chromium (Playwright from PyPI, no browser download)
@@ -23,6 +23,18 @@ test: $(STAMP)
 screenshots: $(STAMP)
 	STACK_SHOTS=docs/figures $(PY) -m pytest -q tests/test_viewer.py
 
+# the documentation site (docs/, mkdocs.yml) into site/, strict: a broken link or reference fails it
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict
+
+docs-serve: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs serve
+
+# every figure in docs/ made again from runs (bench/figures.py --list says which command makes which; hours)
+figures: $(STAMP)
+	$(PY) -m pip install -q -e '.[test,bench]'
+	$(PY) bench/figures.py
+
 # the golden step logs (tests/golden/, tests/test_replay.py) recorded again: after a change meant to alter decisions
 golden: $(STAMP)
 	$(PY) tests/golden_logs.py
@@ -39,4 +51,4 @@ core-check:
 	.venv-core/bin/stack-agent --help >/dev/null && echo "core install: stack-agent --help runs"
 
 clean:
-	rm -rf $(VENV) .venv-core runs
+	rm -rf $(VENV) .venv-core runs site

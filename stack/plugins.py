@@ -1,13 +1,13 @@
 """One record per plugin, one registry per kind (policies, drivers, lidars), imported lazily.
 
-A :class:`Plugin` names its config dataclass, its factory and (drivers) its simulated device as
+A ``Plugin`` names its config dataclass, its factory and (drivers) its simulated device as
 ``"module:attr"`` strings (python-can's ``BACKENDS`` style): nothing is imported until used, so
 reading a scenario never imports torch, pybullet or matplotlib. The built-in records sit in each
 kind's package (``stack/policies/__init__.py``, ``stack/drivers/__init__.py``); plugins from
 outside the tree come from
 
 - the entry-point group ``formation_stack.<kind>`` (e.g. ``formation_stack.policies``) of an
-  installed distribution: each entry point loads a :class:`Plugin` (or a list of them);
+  installed distribution: each entry point loads a ``Plugin`` (or a list of them);
 - the environment variable ``FORMATION_STACK_PLUGINS``: module names (separated by ``,``), each
   with a list ``POLICIES`` / ``DRIVERS`` / ``LIDARS`` of records. Subprocesses (the fleet's
   agents) inherit it, so they find the same plugins.

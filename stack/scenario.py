@@ -5,7 +5,7 @@ range, and rejected with its path when unknown or wrong, e.g.::
 
     scenario.yaml: robots[2].pose: expected 3 numbers, got 2
 
-The loader returns a frozen :class:`Scenario`; every process of a fleet (world, agents,
+The loader returns a frozen ``Scenario``; every process of a fleet (world, agents,
 orchestrator) reads the same resolved file, written by the orchestrator next to the report.
 """
 
@@ -88,6 +88,9 @@ class Obstacle:
 
 @dataclass(frozen=True)
 class LidarConfig:
+    """``robot.lidar``: the beams, field of view, range and noise of the scan, and where the scan comes from
+    (``source``: the world, the base's driver, a ROS 2 topic, an RPLidar)."""
+
     beams: int = 180
     fov: float = math.pi  # rad (YAML: fov_deg)
     range: float = 5.0
@@ -125,6 +128,9 @@ class BaseConfig:
 
 @dataclass(frozen=True)
 class RobotConfig:
+    """One robot: its ``robots[i]`` entry layered over the ``robot:`` defaults (pose, role, policy, driver,
+    limits, lidar, noise, the policy's and the driver's own blocks, its embodiment)."""
+
     id: int
     role: str | None
     pose: tuple[float, float, float]  # x, y, yaw [rad]
@@ -226,6 +232,8 @@ class BurstConfig:
 
 @dataclass(frozen=True)
 class CommConfig:
+    """``comm``: the radio model applied at each receiver: loss, burst loss (Gilbert-Elliott) and latency."""
+
     loss: float = 0.0
     burst: BurstConfig | None = None
     latency_ms: float = 0.0
@@ -248,6 +256,9 @@ class SlotChange:
 
 @dataclass(frozen=True)
 class FormationConfig:
+    """``formation``: the leader, the goal and each follower's slot (``L``, ``psi_deg`` behind the leader),
+    with slot changes over time."""
+
     leader: int
     goal: tuple[float, float]
     slots: dict[int, Slot]  # the slots at t = 0
@@ -296,6 +307,9 @@ class FormationConfig:
 
 @dataclass(frozen=True)
 class SuccessConfig:
+    """``success``: what a run must meet: the leader within ``goal_tolerance`` of the goal before ``max_time``,
+    and no collision if ``no_collisions``."""
+
     goal_tolerance: float = 0.5
     max_time: float | None = None
     no_collisions: bool = True
@@ -320,6 +334,10 @@ class SiteConfig:
 
 @dataclass(frozen=True)
 class Scenario:
+    """A whole scenario file, parsed and checked (``parse_scenario``, ``load_scenario``): the world,
+    the robots (each a ``RobotConfig`` over the ``robot:`` defaults), the formation, the radio model, the
+    success criteria and the bench settings. Unknown keys are errors."""
+
     name: str
     seed: int
     dt: float
@@ -743,7 +761,7 @@ _TOP_KEYS = {"name", "seed", "dt", "duration", "world", "robot", "comm", "format
 
 
 def parse_scenario(data: Any, source: str = "<scenario>") -> Scenario:
-    """Validate a scenario given as parsed YAML; raise :class:`ScenarioError` on the first problem."""
+    """Validate a scenario given as parsed YAML; raise ``ScenarioError`` on the first problem."""
     rd = _Reader(source)
     d = rd.mapping(data, "", _TOP_KEYS)
     for k in ("dt", "robots"):

@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+import stack  # noqa: F401  first: it pins numpy's BLAS kernels before numpy loads (stack/numerics.py)
 import pytest
 import yaml
 

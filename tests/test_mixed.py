@@ -281,17 +281,24 @@ def test_a_motion_capture_pose_source_moves_the_body_at_the_speed_its_stamps_giv
             real = RealRobots(w, sc, s, Keys("speed"))
             pub = s.declare_publisher("vrpn_mocap/speed/pose")
             pub.put(b"\x00\x01\x00\x00garbage")  # counted, never taken
-            # a burst, as a 100 Hz system's samples come: arrival times say nothing, the capture stamps do
-            for k, stamp in enumerate((10.00, 10.01, 10.01, 10.02)):
-                pub.put(encode_pose_stamped(stamp, 1.0 + 0.005 * min(k, 2) + 0.005 * (k == 3), 0.0, 0.0))
-            assert wait_for(lambda: real.poses[0] == 4, 5.0)
+            # a burst, as a 100 Hz system's samples come (arrival times say nothing, the capture stamps do), at
+            # 0.5 m/s with a millimetre of jitter, one stamp twice and one pose repeated: the last two poses alone
+            # would read 0 m/s (the world's settle check took a driving leader as stopped), the baseline does not
+            xs = [1.0 + 0.005 * k + 0.001 * (-1) ** k for k in range(16)]
+            xs[-1] = xs[-2]
+            stamps = [10.0 + 0.01 * k for k in range(16)]
+            for stamp, x in zip(stamps[:8] + [stamps[7]] + stamps[8:], xs[:8] + [xs[7]] + xs[8:]):
+                pub.put(encode_pose_stamped(stamp, x, 0.0, 0.0))
+            pub.put(encode_pose_stamped(9.5, 5.0, 0.0, 0.0))  # older than every one taken: counted, not placed
+            assert wait_for(lambda: real.poses[0] == 17 and real.out_of_order[0] == 1, 5.0)
             real.place(0.0)
-            assert w.x[0] == pytest.approx(1.015) and w.v[0] == pytest.approx(0.5)
+            assert w.x[0] == pytest.approx(xs[-1]) and w.v[0] == pytest.approx(0.5, abs=0.06)
             rep = real.report()
             real.close()
     finally:
         w.close()
     assert rep["pose_sources"] == {"0": "vrpn_mocap/speed/pose"} and rep["pose_malformed"] == {"vrpn_mocap/speed/pose": 1}
+    assert rep["pose_out_of_order"] == {"0": 1}
 
 
 def test_the_stand_in_site_has_the_real_robots_and_the_obstacles_that_are_not_virtual():

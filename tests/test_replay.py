@@ -11,8 +11,12 @@ with loss, and restarted agents; tests/test_agent_view.py, an agent's own ``--re
 from __future__ import annotations
 
 import math
+import os
+import platform
 import shutil
 import struct
+import subprocess
+import sys
 from pathlib import Path
 
 import msgspec
@@ -282,3 +286,23 @@ def test_bad_step_log_and_out_paths_are_one_line(tmp_path, capsys):
                         "--out", str(tmp_path / "file" / "sub")])
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1 and "cannot write" in err, err
+
+
+def _core_in_a_fresh_process(**env) -> str:
+    e = {k: v for k, v in os.environ.items() if k != "OPENBLAS_CORETYPE"} | env
+    out = subprocess.run([sys.executable, "-c", "import stack, stack.numerics as n; print(n.blas_core())"],
+                         capture_output=True, text=True, env=e, timeout=60, check=True).stdout
+    return out.strip().splitlines()[-1]
+
+
+def test_every_x86_machine_with_avx2_runs_the_same_blas_kernels_so_logs_replay_across_machines():
+    """A log recorded on an AVX2 machine (OpenBLAS Haswell kernels) replays to the bit on an AVX-512 one only if
+    both run one kernel set: stack pins it before numpy loads; a user's OPENBLAS_CORETYPE wins."""
+    from stack.numerics import PINNED_CORE, _has_avx2_fma, blas_core
+
+    if platform.machine() == "x86_64" and _has_avx2_fma():
+        assert blas_core() == PINNED_CORE  # this test process (conftest imports stack first)
+        assert _core_in_a_fresh_process() == PINNED_CORE
+        assert _core_in_a_fresh_process(OPENBLAS_CORETYPE="Prescott") != PINNED_CORE
+    else:  # nothing pinned: OpenBLAS picks its own
+        assert "OPENBLAS_CORETYPE" not in os.environ

@@ -96,6 +96,10 @@ class StepInputs:
 
 @dataclass(frozen=True)
 class StepOutput:
+    """What one control step decided: the command ``(v, w)``, the estimated pose it came from, the situation
+    (Bai's decision layer), the estimate's covariance trace, the distance to the goal, why the command is zero
+    if it is (``stale``), and where the decision layer steers."""
+
     v: float
     w: float
     pose: Pose
@@ -126,7 +130,7 @@ class StepConfig:
     """Where the odom frame is in the site frame: ``site``, ``boot``, ``boot-position`` or ``first``
     (``frames.OdomFrame``); the agent passes the robot's resolved ``RobotConfig.odom_origin``."""
     guard: GuardConfig = field(default_factory=GuardConfig)
-    """The collision guard under every policy (:mod:`.guard`): the forward speed the robot can stop from."""
+    """The collision guard under every policy (``.guard``): the forward speed the robot can stop from."""
 
 
 @dataclass

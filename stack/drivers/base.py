@@ -59,6 +59,9 @@ class Odometry:
 
 @dataclass(frozen=True)
 class DriverLimits:
+    """What every driver enforces, whatever its backend: speeds clipped to ``v_max`` / ``w_max`` and a command
+    older than ``cmd_timeout`` replaced by zero (the watchdog, in ``Driver.command``)."""
+
     v_max: float
     w_max: float
     cmd_timeout: float = 0.5  # [s] a command older than this is replaced by zero
@@ -417,20 +420,24 @@ class Driver(Counted, ABC):
 
     # --- backend hooks ---------------------------------------------------------------
     @abstractmethod
-    def _open(self) -> None: ...
+    def _open(self) -> None:
+        """Backend: connect to the device; return when it is ready, or raise ``DriverError`` saying why not."""
 
     @abstractmethod
-    def _send(self, v: float, w: float) -> None: ...
+    def _send(self, v: float, w: float) -> None:
+        """Backend: put one command on the wire; ``(v, w)`` are already clipped and watched by ``command``."""
 
     def _send_step(self, v: float, w: float, step: int) -> None:
         """Send a command belonging to control step ``step`` (lock-step worlds care; devices do not)."""
         self._send(v, w)
 
     @abstractmethod
-    def _read(self) -> Odometry | None: ...
+    def _read(self) -> Odometry | None:
+        """Backend: the newest ``Odometry`` the device sent since the last call, or None if nothing new came."""
 
     @abstractmethod
-    def _close(self) -> None: ...
+    def _close(self) -> None:
+        """Backend: release the device (``close`` has already sent zero velocity)."""
 
     def _keepalives(self) -> list[Keepalive]:
         """What the device needs resent, built when opening. Default: nothing."""

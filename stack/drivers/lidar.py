@@ -1,13 +1,13 @@
 """Lidar sources: where a robot's scans come from (the sensor drivers' room; ``LIDARS`` in
 ``stack/drivers/__init__.py``), chosen by the scenario's ``robot.lidar.source``.
 
-- ``world`` (:class:`WorldLidar`): in simulation, the world publishes each robot's
-  :class:`~stack.comm.messages.Scan` on ``stack/<fleet>/<id>/scan``, already in the robot's configured layout;
+- ``world`` (``WorldLidar``): in simulation, the world publishes each robot's
+  ``stack.comm.messages.Scan`` on ``stack/<fleet>/<id>/scan``, already in the robot's configured layout;
 - a sensor on its own wire (``ros2``: ``sensor_msgs/LaserScan`` over Zenoh, ``rplidar``: a Slamtec
-  A-series on a serial port): a :class:`Lidar`, the sensor-driver interface below. In simulation the world
+  A-series on a serial port): a ``Lidar``, the sensor-driver interface below. In simulation the world
   hosts a simulated device behind each (``stack/sim_bridge/lidar_devices.py``), so the same code runs.
 
-The interface, like :class:`~stack.drivers.base.Driver` for bases: the public methods keep the rules and a
+The interface, like ``stack.drivers.base.Driver`` for bases: the public methods keep the rules and a
 backend implements the underscored hooks::
 
     class MyLidar(Lidar):
@@ -20,7 +20,7 @@ newest scan, ``scans`` how many were delivered, ``counters`` (``count(name)``; a
 to ``on_malformed`` as ``<source>/<name>``), ``age()`` / ``liveness()`` on the source's clock (the agent's:
 sim time in lock-step). Staleness itself is the agent's rule (``StepConfig.lidar_stale_s``).
 
-A :class:`LidarScan` is in the sensor's own frame (angles counter-clockwise from its forward axis, REP 103);
+A ``LidarScan`` is in the sensor's own frame (angles counter-clockwise from its forward axis, REP 103);
 the agent turns it into the robot-centred beams its policy expects (``stack.agents.lidar.scan_from_lidar``,
 with the ``robot.lidar.mount`` pose).
 """
@@ -136,10 +136,12 @@ class Lidar(Counted, ABC):
 
     # --- backend hooks ---------------------------------------------------------------------
     @abstractmethod
-    def _open(self) -> None: ...
+    def _open(self) -> None:
+        """Backend: open the sensor and start delivering its scans; raise ``LidarError`` saying why it cannot."""
 
     @abstractmethod
-    def _close(self) -> None: ...
+    def _close(self) -> None:
+        """Backend: stop the sensor and release it."""
 
 
 class WorldLidar:

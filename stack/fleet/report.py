@@ -95,6 +95,7 @@ def _mixed(sc: Scenario, world: dict, diags: dict) -> dict | None:
                                        if sources.get(str(rid), "estimate") != "estimate"},
             "poses_received": world.get("poses_received", {}), "pose_stale": world.get("pose_stale", []),
             "pose_malformed": world.get("pose_malformed", {}),
+            "pose_out_of_order": world.get("pose_out_of_order", {}),
             "virtual_scans_sent": world.get("virtual_scans_sent", {}),
             "virtual_returns": {str(rid): getattr(diags.get(rid), "virtual", None) for rid in real}}
 

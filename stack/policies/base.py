@@ -1,6 +1,6 @@
 """The policy interface: ``act(observation) -> (v, w)``.
 
-A policy sees an :class:`Observation` in the robot's own frame and returns body-frame
+A policy sees an ``Observation`` in the robot's own frame and returns body-frame
 velocities; it imports no Zenoh, no driver and no world, so it can be trained and tested
 alone. Limits are enforced by the driver base, not here.
 """
@@ -51,6 +51,13 @@ class Observation:
 
 
 class Policy(ABC):
+    """A formation policy: one ``Observation`` in, one body-frame command ``(v, w)`` out, every control step.
+
+    A policy is one module and one registry line (``stack.plugins``); its settings are a typed config under
+    ``robot.<name>`` in the scenario. The step pipeline (``stack.agents.step``) builds the observation, runs
+    the guard over the command and applies the speed limits, so a policy only decides.
+    """
+
     name = "base"
     hybrid = True
     """True: the policy is the "network" of Bai's hybrid strategy (PID drives in situation 1);

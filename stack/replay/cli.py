@@ -18,6 +18,7 @@ import sys
 from pathlib import Path
 
 from ..agents.steplog import LogError
+from ..numerics import blas_core
 from ..scenario import ScenarioError, policy_names
 from .run import Changes, Result, check_out_dir, describe_first, differing, largest, replay
 
@@ -168,7 +169,9 @@ def verify(run: Path) -> int:
         print(f"stack-fleet replay: {e}", file=sys.stderr)
         return 2
     if bad:
-        print(f"{path}: robots {bad} do not reproduce: a hidden input of the step, or a change since the recording")
+        core = blas_core()
+        print(f"{path}: robots {bad} do not reproduce: a hidden input of the step, or a change since the recording"
+              + (f" (or a machine whose BLAS kernels differ: this one runs OpenBLAS {core}; stack/numerics.py)" if core else ""))
         return 1
     if part:
         print(f"{path}: robots {part} reproduced only up to where their logs stop (said above): not verified whole")

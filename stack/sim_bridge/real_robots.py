@@ -25,7 +25,7 @@ import logging
 import math
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 
 import zenoh
 
@@ -37,6 +37,9 @@ log = logging.getLogger("stack.world")
 
 STALE_GROWTH_MAX_M = 1.0
 """[m] the most a stale real robot's body grows."""
+SPEED_BASELINE_S = 0.1
+"""[s] a motion-capture body's speed is taken over at least this much capture time (the newest pose against the
+oldest kept)."""
 GROWTH_STEP_M = 0.05
 """[m] the body's growth is rounded up to this (its collision shape is rebuilt when it changes)."""
 
@@ -50,9 +53,10 @@ class RealRobots:
         self._lock = threading.Lock()
         self.latest: dict[int, tuple[float, float, float, float, float, float]] = {}  # id -> x, y, yaw, v, w, arrival
         self.poses: Counter[int] = Counter()
-        self._stamps: dict[int, float] = {}  # motion capture: the newest pose's capture stamp
-        self._speed: dict[int, tuple[float, float]] = {}  # motion capture: (v, w) from the last two poses
+        self._history: dict[int, deque] = {}  # motion capture: (stamp, x, y, yaw) over SPEED_BASELINE_S of stamps
+        self._speed: dict[int, tuple[float, float]] = {}  # motion capture: (v, w) over that baseline
         self.malformed: Counter[str] = Counter()
+        self.out_of_order: Counter[int] = Counter()  # motion capture: poses stamped before one already taken
         self.stale_since: dict[int, float] = {}  # id -> sim time its pose went stale
         self.stale_spans: list[dict] = []  # {"robot", "start", "end"} in sim time
         self.virtual_sent: Counter[int] = Counter()
@@ -84,16 +88,23 @@ class RealRobots:
         except CdrError:
             return self._bad(str(sample.key_expr))
         with self._lock:
-            prev, (v, w) = self.latest.get(rid), self._speed.get(rid, (0.0, 0.0))
-            last = self._stamps.get(rid)
-            self._stamps[rid] = stamp
-        # the body's speed (the truth's, the world's settle check): from the last two poses by their capture stamps,
-        # not their arrival (samples come in bursts); two with one stamp keep the speed as it was
-        if prev is not None and last is not None and stamp - last > 1e-4:
-            dt = stamp - last
-            v = math.hypot(x - prev[0], y - prev[1]) / dt
-            w = math.remainder(yaw - prev[2], math.tau) / dt
-            with self._lock:
+            v, w = self._speed.get(rid, (0.0, 0.0))
+            hist = self._history.setdefault(rid, deque())
+            if hist and stamp < hist[-1][0] - 1e-4:  # older than one taken: counted, not placed
+                self.out_of_order[rid] += 1
+                return
+            if hist and stamp <= hist[-1][0] + 1e-4:  # one capture stamp twice: the later arrival stands
+                hist.pop()
+            hist.append((stamp, x, y, yaw))
+            while len(hist) > 2 and hist[-1][0] - hist[1][0] >= SPEED_BASELINE_S:
+                hist.popleft()
+            # the body's speed (the truth's, the world's settle check): over at least SPEED_BASELINE_S of capture
+            # stamps, not arrivals (samples come in bursts) and not the last two poses (10 ms apart at 100 Hz, where
+            # a millimetre of jitter, or a pose that repeats, reads as 0.1 m/s or as standing still)
+            t0, x0, y0, yaw0 = hist[0]
+            if stamp - t0 > 1e-4:
+                v = math.hypot(x - x0, y - y0) / (stamp - t0)
+                w = math.remainder(yaw - yaw0, math.tau) / (stamp - t0)
                 self._speed[rid] = (v, w)
         self._took(rid, (x, y, yaw, v, w))
 
@@ -165,7 +176,8 @@ class RealRobots:
                     "pose_stale": [dict(s) for s in self.stale_spans],
                     "virtual_scans_sent": {str(rid): self.virtual_sent[rid] for rid in self.robots
                                            if self.robots[rid].lidar.virtual},
-                    "pose_malformed": dict(self.malformed)}
+                    "pose_malformed": dict(self.malformed),
+                    "pose_out_of_order": {str(rid): n for rid, n in self.out_of_order.items()}}
 
     def close(self) -> None:
         for sub in self._subs:
