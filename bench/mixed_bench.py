@@ -1,6 +1,7 @@
 """Mixed reality against the all-simulated fleet: formation and goal error, judged on truth.
 
-One scenario, a diamond of four over a 10 m course past a wall that stands in the site and a cylinder that
+One scenario, a real leader and four simulated followers (``--followers``: a diamond and one behind it) over a
+10 m course past a wall that stands in the site and a cylinder that
 exists only in the world (``virtual``). Robot 0, the leader, is a Jackal:
 
 - ``all simulated``: the fleet's world hosts its hardware-like Jackal like every other robot's base;
@@ -13,7 +14,7 @@ Each run is judged on both worlds' truth (``stack.fleet.mixed.judge``): the foll
 them, the leader where the site had it. Real time, one run per row and seed (``--seeds``). Writes
 ``OUT/mixed_bench.md`` and ``.json``::
 
-    python bench/mixed_bench.py [--seeds 2] [--out runs/mixed-bench]
+    python bench/mixed_bench.py [--seeds 2] [--followers 4] [--out runs/mixed-bench]
 """
 
 from __future__ import annotations
@@ -39,19 +40,22 @@ SOURCES = [None, (10, 0), (30, 0), (100, 0), (10, 100), (30, 100), (100, 100)]
 """None: the robot's estimate; (rate Hz, latency ms): a motion-capture system."""
 
 
-def scenario(seed: int) -> dict:
+FOLLOWERS = {1: ({"L": 2.0, "psi_deg": 135}, [-1.4, 1.4, 0.0]), 2: ({"L": 2.0, "psi_deg": 180}, [-2.0, 0.0, 0.0]),
+             3: ({"L": 2.0, "psi_deg": -135}, [-1.4, -1.4, 0.0]), 4: ({"L": 4.0, "psi_deg": 180}, [-4.0, 0.0, 0.0])}
+"""Follower id -> (its slot behind the leader, its start pose)."""
+
+
+def scenario(seed: int, followers: int = 4) -> dict:
+    ids = sorted(FOLLOWERS)[:followers]
     return {
         "name": "mixed-bench", "seed": seed, "dt": 0.1, "duration": 45.0,
         "world": {"obstacles": [{"type": "wall", "from": [-6, 4.5], "to": [14, 4.5], "thickness": 0.2},
                                 {"type": "cylinder", "x": 5.0, "y": -3.2, "radius": 0.4, "virtual": True}]},
         "robot": {"radius": 0.3, "v_max": 0.8, "w_max": 1.5, "comm_range": 15.0,
                   "lidar": {"beams": 180, "fov_deg": 180, "range": 5.0}},
-        "formation": {"leader": 0, "goal": [10.0, 0.0],
-                      "slots": {1: {"L": 2.0, "psi_deg": 135}, 2: {"L": 2.0, "psi_deg": 180}, 3: {"L": 2.0, "psi_deg": -135}}},
+        "formation": {"leader": 0, "goal": [10.0, 0.0], "slots": {i: FOLLOWERS[i][0] for i in ids}},
         "robots": [{"id": 0, "role": "leader", "pose": [0.0, 0.0, 0.0], "driver": "jackal"},
-                   {"id": 1, "role": "follower", "pose": [-1.4, 1.4, 0.0]},
-                   {"id": 2, "role": "follower", "pose": [-2.0, 0.0, 0.0]},
-                   {"id": 3, "role": "follower", "pose": [-1.4, -1.4, 0.0]}],
+                   *({"id": i, "role": "follower", "pose": FOLLOWERS[i][1]} for i in ids)],
         "success": {"goal_tolerance": 0.4, "max_time": 45.0, "no_collisions": True},
     }
 
@@ -101,6 +105,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", type=int, default=1, help="seeds 0..N-1 per row")
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "mixed-bench")
+    ap.add_argument("--followers", type=int, choices=range(1, len(FOLLOWERS) + 1), default=4,
+                    help="simulated followers of the real leader")
     a = ap.parse_args()
     import subprocess
     import time
@@ -113,7 +119,7 @@ def main() -> int:
     try:
         jobs = [(seed, s) for seed in range(a.seeds) for s in ["sim", *SOURCES]]
         for seed, source in tqdm(jobs, desc="mixed bench", unit="run"):
-            raw, out = scenario(seed), a.out / f"seed{seed}"
+            raw, out = scenario(seed, a.followers), a.out / f"seed{seed}"
             if source == "sim":
                 got, name = all_simulated(raw, out / "all-simulated", ep), "all simulated"
             else:
@@ -178,7 +184,8 @@ def plot_tracks(run: Path, png: Path) -> None:
     ax.set_aspect("equal")
     ax.set_xlabel("x [m] (site frame)")
     ax.set_ylabel("y [m]")
-    ax.set_title("a real Jackal (stand-in site) and three simulated robots, judged on both worlds' truth")
+    n = len(ids) - 1
+    ax.set_title(f"a real Jackal (stand-in site) and {n} simulated robot{'s' if n != 1 else ''}, judged on both worlds' truth")
     ax.legend(loc="lower left", fontsize=7, ncol=2)
     fig.tight_layout()
     fig.savefig(png)

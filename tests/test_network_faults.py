@@ -167,7 +167,10 @@ def assert_rode_through(report: dict, out: Path, outage: tuple[float, float] | N
         return
     tr = np.load(out / "truth.npz")
     t0, t1 = outage
-    during = (tr["t"] >= t0 + timeout_s + STOP_S) & (tr["t"] <= t1)
+    # up to two steps before the world marks its outage over: an agent can hear the router again first (a CAN
+    # robot's commands reach its device over CAN, not through the router: one fresh-clone CI saw the leader at
+    # 0.02 m/s on the outage's last step)
+    during = (tr["t"] >= t0 + timeout_s + STOP_S) & (tr["t"] <= t1 - 0.2)
     assert during.sum() >= 10, (t0, t1)
     assert np.abs(tr["v"][during]).max() < 1e-6 and np.abs(tr["w"][during]).max() < 1e-6
 
