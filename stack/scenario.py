@@ -202,8 +202,11 @@ class RobotConfig:
         return replace(self, settings=dict(self.settings) | {key: cfg})
 
     def with_defaults(self, *keys: str) -> "RobotConfig":
-        """This robot with the default config of each of ``keys`` it has no settings for (resolved, so logged)."""
-        missing = {k: self.config_for(k) for k in keys if k not in self.settings}
+        """This robot with the default config of each of ``keys`` it has no settings for (resolved, so logged); a
+        policy that takes no settings (its record's ``config`` is None) has none to add."""
+        from .policies import settings_class
+
+        missing = {k: self.config_for(k) for k in keys if k not in self.settings and settings_class(k) is not None}
         return replace(self, settings=dict(self.settings) | missing) if missing else self
 
 

@@ -45,7 +45,7 @@ def scenario_dict(**over) -> dict:
     return d
 
 
-WALL_CLOCK = ("wall_time_s", "steps_per_s", "control_loop_ms", "control_compute_ms", "state_latency_ms")
+WALL_CLOCK = ("wall_time_s", "steps_per_s", "control_loop_ms", "control_compute_ms", "state_latency_ms", "planning")
 """Report entries measured on the wall clock: the only ones a lock-step run may change."""
 WALL_CLOCK_ROBOT = ("device_odom_strays",)
 """Per robot, the same: how many samples a device sent on the wall clock before lock-step began were still on its

@@ -201,6 +201,7 @@ def drive(dl: DecisionLayer, boxes: np.ndarray, steps: int, x=0.0, y=0.0):
     yaw, seen = 0.0, []
     for k in range(steps):
         t = round(k * DT, 6)
+        dl.stuck.runner.begin(k, t)  # what the step pipeline does first: plans that are due are adopted
         s = ray_cast(np.array(x), np.array(y), np.array(yaw), NONE, boxes, BEAMS, RADIUS + 0.01, 5.0)
         leader = Neighbour(0, "leader", *LEADER, 0.0, 0.0, 0.0, t, k)
         d = dl.decide(SimpleNamespace(x=x, y=y, yaw=yaw, v=0.0, w=0.0), t, {0: leader}, s[None], float(s.min()), t_run=t)
@@ -226,6 +227,21 @@ def test_the_planned_detour_finds_the_gap_the_blind_escapes_miss():
     ll = dl.livelock()
     assert ll["episodes"] >= 1 and ll["plan"] >= 1 and ll["gave_up"] == 0
     assert obstacle_distance(np.array(x), np.array(y), NONE, CROSS) > RADIUS
+
+
+def test_the_detour_planned_beside_the_step_finds_the_gap_too():
+    """The same with the plans on a worker thread, each one adopted at the step after it was asked (lock-step; an
+    agent's runner): the robot drives its policy (a try's first plan) or its last path meanwhile."""
+    from stack.planning.runner import ThreadRunner
+
+    dl = layer()
+    dl.stuck.runner = ThreadRunner(lockstep_steps=1)
+    x, y, _ = drive(dl, CROSS, 1200)
+    dl.stuck.runner.close()
+    assert math.hypot(x - SLOT[0], y - SLOT[1]) < 1.0, (x, y)
+    ll, st = dl.livelock(), dl.stuck.runner.stats()
+    assert ll["plan"] >= 1 and ll["gave_up"] == 0 and st["adopted"] >= 3, (ll, st)
+    assert abs(st["wait_max_s"] - DT) < 1e-9, st  # every plan drove from the next step
 
 
 def test_the_plan_runs_on_the_memory_round_what_was_seen():

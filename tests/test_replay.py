@@ -227,6 +227,7 @@ def test_a_record_keeps_every_float_to_the_bit_non_finite_ones_too():
         id, role, policy_name, seed = 4, "peer", "pid", 7
         guard = type("G", (), {"capped": 3, "slides": 1})()
         neighbours = {3: None, 1: None}
+        planner = type("R", (), {"adopted_now": [2, 5]})()
 
     pl = _Pl()
     weird = [0.1 + 0.2, -0.0, 5e-324, 1.7976931348623157e308, math.pi, float("nan"), float("inf"), -float("inf")]
@@ -245,6 +246,7 @@ def test_a_record_keeps_every_float_to_the_bit_non_finite_ones_too():
         for fa, fb in zip((a.v, a.w, a.t, a.wz_imu, *a.pose, *a.fix), (b.v, b.w, b.t, b.wz_imu, *b.pose, *b.fix)):
             assert _bits(fa) == _bits(fb) or (math.isnan(fa) and math.isnan(fb)), (fa, fb)
     assert back.fixes == inp.fixes and back.dead == inp.dead and back.held == "no-network" and back.goal == (1.25, -3.5)
+    assert back.plans == (2, 5)  # the plans the step adopted: a replay adopts them at the same step
     assert _bits(back.now) == _bits(inp.now)
     assert _bits(rec.out.w) == _bits(-0.0) and rec.out.v == 1 / 7 and (rec.out.guard_caps, rec.out.guard_slides) == (3, 1)
     assert rec.out.heard == [1, 3]

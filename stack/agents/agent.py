@@ -35,6 +35,7 @@ from ..comm.lockstep import StepBarrier
 from ..comm.messages import Answer, Clock, Diag, Fix, Relayed, Scan, State, WorldStatus
 from ..drivers import Driver, DriverLimits, make_driver
 from ..drivers.lidar import Lidar, make_lidar
+from ..planning.runner import ThreadRunner
 from ..scenario import Scenario, fix_due
 from .frames import StreamClock
 from .lidar import scan_from_driver, scan_from_lidar
@@ -49,6 +50,7 @@ log = logging.getLogger("stack.agent")
 
 DEVICE_ODOM_WAIT_S = 2.0  # lock-step: how long (wall) to wait for a device sample the world says it sent (a lost one)
 STEP_LOG_BUFFER = 64 * 1024  # bytes of step records held before a write (a killed agent loses at most this)
+PLAN_LOCKSTEP_STEPS = 1  # lock-step: a plan asked for at step k drives from step k + this
 ODOM_QUEUE = 1000  # odometry samples kept between two control steps (a stalled loop drops the oldest)
 
 
@@ -130,6 +132,9 @@ class Agent:
         self.pipeline = StepPipeline(sc, self.id, policy=cfg.policy, seed=cfg.seed,
                                      config=StepConfig(odom_origin=cfg.odom_origin or self.robot.odom_origin,
                                                        guard=self.robot.guard or GuardConfig()))
+        # plans beside the step: lock-step adopts one at the next step (the same to the bit on any machine), real
+        # time once it is done (the step log says when: it replays)
+        self.pipeline.use_planner(ThreadRunner(lockstep_steps=PLAN_LOCKSTEP_STEPS if cfg.lockstep else None))
         self.malformed: dict[str, int] = {}
         self.sent = 0
         self.seq = 0
@@ -403,6 +408,7 @@ class Agent:
                     self._loop()
                 finally:
                     self.driver.stop()  # zero velocity before anything else on the way out
+                    self.pipeline.planner.close()
                     self._publish_diag("stopped")
         finally:
             if self.ros_graph is not None:
@@ -660,6 +666,7 @@ class Agent:
                  odom_stale=pc.odom_stale, lidar_stale=pc.lidar_stale, scans_from_driver=self.scans_from_driver,
                  shield_masked=getattr(pl.policy, "masked", None), guard_caps=pl.guard.capped,
                  guard_slides=pl.guard.slides, links=pl.radio.links(), stuck=pl.decision.livelock(),
+                 planner=pl.planner.stats() if pl.planner.tickets else None,
                  led=[list(iv) for iv in pl.drove_led], held_steps=pl.held_steps, tokens_kept=self.judge.discarded,
                  link_outages=[[o.start + off, None if o.end is None else o.end + off] for o in self.link.outages],
                  virtual=None if self.virtual is None else self.virtual.counters())

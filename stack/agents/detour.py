@@ -171,6 +171,46 @@ def descend(d: np.ndarray, start: tuple[int, int], max_cells: int) -> list[tuple
     return path
 
 
+@dataclass(frozen=True)
+class DetourPlan:
+    """What one plan found: the window's grown cells, corner cell and returns' centres, and the path (world points,
+    robot first; None: no way round)."""
+
+    grid: tuple
+    path: list[tuple[float, float]] | None
+
+
+@dataclass(frozen=True)
+class DetourAsk:
+    """One detour plan on a snapshot of the memory (the window's remembered cells, a copy): a pure function."""
+
+    occ: np.ndarray
+    corner: tuple[int, int]
+    res: float
+    radius: float
+    cfg: DetourConfig
+    me: tuple[float, float]
+    target: tuple[float, float]
+
+    def run(self) -> DetourPlan:
+        (x0, y0), r, occ = self.corner, self.res, self.occ
+        nx, ny = occ.shape
+        def cell(p: tuple[float, float]) -> tuple[int, int]:  # the window's cell of a point (clipped into it)
+            return min(max(math.floor(p[0] / r) - x0, 0), nx - 1), min(max(math.floor(p[1] / r) - y0, 0), ny - 1)
+
+        s, g = cell(self.me), cell(self.target)
+        blocked = grow(occ, (self.radius + self.cfg.margin) / r)  # where the grown body would touch a return
+        cost = np.where(blocked, 1.0 + self.cfg.near_cost, 1.0)  # dear there, not closed: a pressed robot may leave
+        cost[grow(occ, self.radius / 2 / r)] = np.inf  # closed within half a radius of a return
+        grid = (blocked, x0, y0, (np.argwhere(occ) + (x0 + 0.5, y0 + 0.5)) * r)
+        d = wavefront(cost, g, s)
+        if not math.isfinite(d[s]):
+            return DetourPlan(grid, None)
+        path = [((i + x0 + 0.5) * r, (j + y0 + 0.5) * r) for i, j in descend(d, s, nx * ny)]
+        path[0] = self.me
+        return DetourPlan(grid, path)
+
+
 class DetourPlanner:
     """:meth:`plan` a grid path from a pose to a target on a :class:`ScanMemory`; :meth:`waypoint` along it."""
 
@@ -193,27 +233,20 @@ class DetourPlanner:
         return x0, y0, math.ceil(hi[0] / r) - x0 + 1, math.ceil(hi[1] / r) - y0 + 1
 
     def plan(self, t: float, me: tuple[float, float], target: tuple[float, float]) -> bool:
-        """Plan from ``me`` to ``target`` (clipped into the window); False (and no path) when none exists."""
-        r = self.memory.res
-        x0, y0, nx, ny = self._window(me, target)
-        def cell(p: tuple[float, float]) -> tuple[int, int]:  # the window's cell of a point (clipped into it)
-            return min(max(math.floor(p[0] / r) - x0, 0), nx - 1), min(max(math.floor(p[1] / r) - y0, 0), ny - 1)
+        """Plan from ``me`` to ``target`` (clipped into the window) now; False (and no path) when none exists."""
+        return self.adopt(self.ask(t, me, target).run())
 
-        s, g = cell(me), cell(target)
-        occ = self.memory.window(x0, y0, nx, ny)
-        blocked = grow(occ, (self.radius + self.cfg.margin) / r)  # where the grown body would touch a return
-        cost = np.where(blocked, 1.0 + self.cfg.near_cost, 1.0)  # dear there, not closed: a pressed robot may leave
-        cost[grow(occ, self.radius / 2 / r)] = np.inf  # closed within half a radius of a return
+    def ask(self, t: float, me: tuple[float, float], target: tuple[float, float]) -> "DetourAsk":
+        """The plan as a job on a snapshot of the memory (:meth:`DetourAsk.run` may run beside the control step;
+        :meth:`adopt` takes what it found)."""
         self.planned_at = t
-        self.grid = (blocked, x0, y0, (np.argwhere(occ) + (x0 + 0.5, y0 + 0.5)) * r)
-        d = wavefront(cost, g, s)
-        if not math.isfinite(d[s]):
-            self.path = None
-            return False
-        cells = descend(d, s, nx * ny)
-        self.path = [((i + x0 + 0.5) * r, (j + y0 + 0.5) * r) for i, j in cells]
-        self.path[0] = me
-        return True
+        x0, y0, nx, ny = self._window(me, target)
+        return DetourAsk(self.memory.window(x0, y0, nx, ny), (x0, y0), self.memory.res, self.radius, self.cfg, me, target)
+
+    def adopt(self, found: "DetourPlan") -> bool:
+        """A plan's result: its window and path (None: there is no way round). Whether there is a path."""
+        self.grid, self.path = found.grid, found.path
+        return found.path is not None
 
     def waypoint(self, me: tuple[float, float]) -> tuple[float, float] | None:
         """The farthest path point at most ``lookahead`` metres along the path (from its point nearest ``me``) that

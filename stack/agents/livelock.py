@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..planning.runner import PlanRunner
 from ..settings import check, rule
 from .detour import DetourConfig, DetourPlanner, ScanMemory
 
@@ -128,7 +129,11 @@ class StuckDetector:
         self.events: list[dict] = []
         self.open: dict | None = None  # the stuck episode under way: start, tries, side, kind
         self.waypoint: tuple[float, float] | None = None
+        self._target: tuple[float, float] | None = None  # the target a try's plan was asked toward
         self.until = 0.0
+        self.runner = PlanRunner()  # inline; the step pipeline hands it the agent's (plans beside the step)
+        self._replanned: bool | None = None  # a re-plan under way came back: whether it found a path
+        self._first: tuple[bool, tuple[float, float], float] | None = None  # a try's plan came back: found, from, at
 
     def pause(self) -> None:
         """No judgement this step (no target, or the leader holding on purpose): the window starts again."""
@@ -166,6 +171,10 @@ class StuckDetector:
         c = self.cfg
         if not c.enabled:
             return None
+        if self.open is not None and self.open["kind"] == "plan-wait":  # a try's plan is computing beside the step
+            if self._first is None:
+                return None  # the policy drives on meanwhile (the guard under it)
+            return self._planned_try(t, x, y, yaw, scan, fov, range_max, radius)
         if self.waypoint is not None:  # escaping
             if self.open is not None and self.open["kind"] == "plan":
                 wp = self._follow(t, (x, y), target)
@@ -192,32 +201,57 @@ class StuckDetector:
         return self._try(t, x, y, yaw, scan, fov, range_max, radius, target)
 
     def _follow(self, t: float, me: tuple[float, float], target) -> tuple[float, float] | None:
-        """A planned detour under way: the next waypoint on the path (re-planned every ``replan_s``), or None when
-        it is over (time is up, no path any more, or the straight way to the target is open; a plan down a way
-        that was open from the start ends once the robot is ``open_horizon`` along it)."""
+        """A planned detour under way: the next waypoint on the path (re-planned every ``replan_s``, beside the step:
+        the last path is followed meanwhile), or None when it is over (time is up, no path any more, or the straight
+        way to the target is open; a plan down a way that was open from the start ends once the robot is
+        ``open_horizon`` along it)."""
         dc = self.cfg.detour
         if t >= self.plan_until or target is None:
             return None
-        if t - self.planner.planned_at >= dc.replan_s:
-            if not self.planner.plan(t, me, target):
+        if t - self.planner.planned_at >= dc.replan_s and not self.runner.busy("detour"):
+            self.runner.submit("detour", self.planner.ask(t, me, target).run, self._on_replan)
+        if self._replanned is not None:
+            found, self._replanned = self._replanned, None
+            if not found:
                 return None
             along = math.hypot(me[0] - self.plan_from[0], me[1] - self.plan_from[1])
             if self.planner.open_line(me, target) and not (self.straight and along < dc.open_horizon):
                 return None
         return self.planner.waypoint(me)
 
-    def _plan(self, t: float, me: tuple[float, float], target) -> tuple[float, float] | None:
-        """The first waypoint of a planned detour, or None where there is no way round. Where the straight way to
-        the target is open in the memory the robot is stuck all the same (its policy's own steering refuses the
-        way: Deng's obstacle term repels every direction through a gap), so the tracker drives down the way for
-        ``open_horizon`` metres, ``straight_time`` at most."""
+    def _on_replan(self, found) -> None:
+        if self.open is not None and self.open["kind"] == "plan":  # the detour is still under way
+            self._replanned = self.planner.adopt(found)
+
+    def _plan(self, t: float, me: tuple[float, float], target) -> bool:
+        """Ask for a planned detour (inline it is back at once: ``self._first``). Where the straight way to the
+        target is open in the memory the robot is stuck all the same (its policy's own steering refuses the way:
+        Deng's obstacle term repels every direction through a gap), so the tracker drives down the way for
+        ``open_horizon`` metres, ``straight_time`` at most. False: no plan asked (disabled, no target)."""
         dc = self.cfg.detour
-        if not dc.enabled or target is None or not self.planner.plan(t, me, target):
-            return None
-        self.straight = self.planner.open_line(me, target)
+        if not dc.enabled or target is None:
+            return False
+        self._first = None
+        self.runner.submit("detour", self.planner.ask(t, me, target).run,
+                           lambda found: self._on_first(found, me, t))
+        return True
+
+    def _on_first(self, found, me: tuple[float, float], t: float) -> None:
+        if self.open is not None and self.open["kind"] == "plan-wait":
+            self._first = (self.planner.adopt(found), me, t)
+
+    def _planned_try(self, t, x, y, yaw, scan, fov, range_max, radius) -> tuple[float, float] | None:
+        """A try's plan is back: follow it, or (no way round) the next blind try."""
+        (found, me, t_asked), self._first = self._first, None
+        o, dc = self.open, self.cfg.detour
+        if not found:
+            o["kind"] = "escape" if o["blind"] == 0 else "detour"
+            return self._blind(t, x, y, yaw, scan, fov, range_max, radius)
+        self.straight = self.planner.open_line(me, self._target)
         self.plan_from = me
-        self.plan_until = t + (min(dc.straight_time, dc.max_time) if self.straight else dc.max_time)
-        return self.planner.waypoint(me)
+        self.plan_until = t_asked + (min(dc.straight_time, dc.max_time) if self.straight else dc.max_time)
+        self.waypoint, o["kind"] = self.planner.waypoint((x, y)), "plan"
+        return self.waypoint
 
     def _try(self, t, x, y, yaw, scan, fov, range_max, radius, target=None) -> tuple[float, float] | None:
         """Stuck: open an episode if none is open, then the next try: a plan where one helps (first, then every
@@ -233,10 +267,10 @@ class StuckDetector:
             return None
         o["tries"] += 1
         if o["kind"] != "plan":
-            wp = self._plan(t, (x, y), target)
-            if wp is not None:
-                self.waypoint, o["kind"] = wp, "plan"
-                return wp
+            kind, o["kind"], self._target = o["kind"], "plan-wait", target
+            if self._plan(t, (x, y), target):
+                return None if self._first is None else self._planned_try(t, x, y, yaw, scan, fov, range_max, radius)
+            o["kind"] = kind
         return self._blind(t, x, y, yaw, scan, fov, range_max, radius)
 
     def _blind(self, t, x, y, yaw, scan, fov, range_max, radius) -> tuple[float, float]:

@@ -38,6 +38,7 @@ from ..comm.messages import Scan, State
 from ..comm.radio import RadioModel, config_from_scenario
 from ..estimation import EkfConfig, PoseEKF
 from ..estimation.pose import Pose
+from ..planning.runner import PlanRunner
 from ..policies import make_policy
 from .decision import DecisionLayer, Neighbour, obstacle_distance
 from .frames import OdomFrame
@@ -92,6 +93,8 @@ class StepInputs:
     runs on; who is gone, and so the roles, stay as they were; the command is zero."""
     goal: tuple[float, float] | None = None
     """A new goal for the mission (the ROS graph's goal topic), taken before the step (site frame)."""
+    plans: tuple[int, ...] | None = None
+    """Replay: the plans (tickets) the recorded step adopted (``stack.planning.runner``); None: the runner's own rule."""
 
 
 @dataclass(frozen=True)
@@ -166,7 +169,9 @@ class StepPipeline:
         self._odom_pose: tuple[float, float, float] | None = None
         self.policy_name = policy or robot.policy
         self.policy_seed = seed * 1000 + robot_id
+        self.planner = PlanRunner()  # inline; an agent hands it a runner beside the step (use_planner)
         self.policy = make_policy(self.policy_name, robot, seed=self.policy_seed)
+        self.policy.planner = self.planner
         self.pid = make_policy("pid", replace(robot, role=self.role))  # situation 1 of the hybrid strategy
         self.decision = DecisionLayer(robot_id, self.role, scenario.formation, goal=robot.goal, radius=robot.radius,
                                       comm_range=robot.comm_range, scan_range=robot.lidar.range, dt=scenario.dt,
@@ -186,6 +191,12 @@ class StepPipeline:
         self.guard = CollisionGuard(robot.radius, lid.fov, lid.beams, lid.range, self.cfg.guard)
         self._held_since: float | None = None  # step time since which the guard holds the robot still
 
+    def use_planner(self, runner: PlanRunner) -> None:
+        """Where the policy's plans run from now on (``stack.planning.runner``: a worker beside the step, or the
+        replay's script)."""
+        self.planner.close()
+        self.planner = self.policy.planner = self.decision.stuck.runner = runner
+
     @property
     def needs_lidar(self) -> bool:
         """The policy says (``Policy.needs_lidar``): every one but ``pid``, which drives on the estimate alone."""
@@ -193,6 +204,7 @@ class StepPipeline:
 
     # --- the step ------------------------------------------------------------------------------
     def step(self, inp: StepInputs) -> StepOutput:
+        self.planner.begin(inp.step, inp.t, inp.plans)  # plans that are done and due are adopted first
         if inp.goal is not None:
             self.decision.set_goal(inp.goal)
         if inp.held is None:  # a robot that cannot hear keeps its peers: their tokens went with its own link
@@ -400,6 +412,7 @@ class StepPipeline:
             self.led_since = t_run
         robot = replace(self.robot, role=role)
         self.policy = make_policy(self.policy_name, robot, seed=self.policy_seed)
+        self.policy.planner = self.planner
         self.pid = make_policy("pid", robot)
 
 

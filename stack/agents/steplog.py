@@ -127,6 +127,9 @@ class StepRecord(msgspec.Struct, kw_only=True, omit_defaults=True):
     dead: list[int] = []
     held: str | None = None
     goal: list[float] | None = None
+    plans: list[int] | None = None
+    """The plans (``stack.planning.runner`` tickets) this step adopted; None: a log from before the runners (its
+    plans were adopted as they were asked for)."""
     out: Out
     cmd: list[float]
     """What the driver was commanded (after its limits)."""
@@ -201,7 +204,7 @@ class StepLogger:
             scan_t=inp.scan_t, fixes=[FixXY(*map(_f, fx)) for fx in inp.fixes],
             states=[] if self.refs else list(inp.states), state_refs=_refs(inp.states) if self.refs else None,
             dead=sorted(inp.dead), held=inp.held, goal=None if inp.goal is None else list(inp.goal),
-            out=out_of(out, pl), cmd=[float(cmd[0]), float(cmd[1])], setup=self.setup)
+            plans=list(pl.planner.adopted_now), out=out_of(out, pl), cmd=[float(cmd[0]), float(cmd[1])], setup=self.setup)
         self.n += 1
         self.setup = None
         if inp.scan is not None:
@@ -259,7 +262,8 @@ def inputs_of(rec: StepRecord, previous_scan: Scan | None) -> StepInputs:
     return StepInputs(step=rec.step, t=rec.t, t_run=rec.t_run, now=rec.now, odometry=odometry, scan=scan,
                       scan_t=rec.scan_t, fixes=tuple((_unf(fx.x), _unf(fx.y), _unf(fx.std)) for fx in rec.fixes),
                       states=tuple(rec.states), dead=frozenset(rec.dead), held=rec.held,
-                      goal=None if rec.goal is None else (rec.goal[0], rec.goal[1]))
+                      goal=None if rec.goal is None else (rec.goal[0], rec.goal[1]),
+                      plans=None if rec.plans is None else tuple(rec.plans))
 
 
 __all__ = ["VERSION", "WHAT", "Head", "LogError", "Out", "Setup", "StateRefs", "StepLogger", "StepRecord", "decode", "head",

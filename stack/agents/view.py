@@ -204,11 +204,7 @@ class AgentView(QueuedWriter):
 
     def _diag(self, d: Diag) -> None:
         ns = int(round(d.stamp * 1e9))
-        doc = {k: getattr(d, k) for k in ("id", "step", "state", "sent", "received", "delivered", "dropped_loss",
-                                          "dropped_range", "malformed", "fault")}
-        if d.led_since is not None:
-            doc["led_since"] = d.led_since
-        self._json("diag", doc, ns)
+        self._json("diag", vm.diag_doc(d), ns)
         if d.fault and d.fault != self._fault:
             self.event(ns, f"robot {self.id}: fault: {d.fault}", LogLevel.Error)
         self._fault = d.fault

@@ -230,6 +230,7 @@ class Diag(_Msg):
     guard_slides: int = 0  # steps at which a robot the guard held still took its way out (GuardConfig.slide_after_s)
     links: dict[int, dict[str, int]] | None = None  # sender id -> {delivered, dropped_range, dropped_loss}, cumulative
     # (RadioModel.links()): the comm graph a recorder draws; None from senders that do not count per link
+    planner: dict | None = None  # plans beside the step (PlanRunner.stats): asked, adopted, compute ms, ages [s]
     stuck: dict | None = None  # stuck episodes, what resolved them, the leader hold's give-ups (stack.agents.livelock)
 
 

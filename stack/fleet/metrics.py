@@ -279,6 +279,14 @@ def livelock(diags: dict) -> dict | None:
     return out
 
 
+def planning(diags: dict) -> dict | None:
+    """Plans beside the control step (``Diag.planner``, ``stack.planning.runner``), per robot that asked for one:
+    asked and adopted, compute time [ms] p50 / p99 / max, the most step time between asking and driving the plan
+    [s] and the plan's age at the end [s]; None when no robot planned."""
+    got = {str(rid): d.planner for rid, d in sorted(diags.items()) if getattr(d, "planner", None)}
+    return got or None
+
+
 # --- faults --------------------------------------------------------------------------------------
 
 def frozen_mask(faults: list, t: np.ndarray, ids: list[int]) -> np.ndarray:

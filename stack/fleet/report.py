@@ -75,6 +75,7 @@ def report_of(sc: Scenario, log: TruthLog, tg: Targets, world: dict, *, diags: d
         "steps": int(log.steps),
         "steps_per_s": m.rounded(world.get("steps_per_s")),
         "late_steps": world.get("late_steps"),  # lock-step: steps the world took without an agent's answer
+        "planning": m.planning(diags),  # plans beside the control step: compute times, how old the plan driven was
         "livelock": m.livelock(diags),  # stuck episodes, what resolved them, the leader hold's give-ups
         "network": m.network(world, diags, sc.dt),  # outages, who led when, two_leaders_s
         "mixed": _mixed(sc, world, diags),  # real robots: where their truth came from, stale spans, virtual returns

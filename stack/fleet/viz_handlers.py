@@ -94,10 +94,7 @@ def on_cmd_vel(rec, ch, v, key: str, m: CmdVel, recv_ns: int) -> None:
 
 def on_diag(rec, ch, v, key: str, m: Diag, recv_ns: int) -> None:
     ns = rec.stamp(m.stamp, recv_ns)
-    doc = {k: getattr(m, k) for k in ("id", "step", "state", "sent", "received", "delivered", "dropped_loss",
-                                      "dropped_range", "malformed", "fault")}
-    if m.led_since is not None:
-        doc["led_since"] = m.led_since
+    doc = vm.diag_doc(m)
     rec.write(ch.robot[m.id]["diag"], vm.robot_topic(m.id, "diag"), doc, ns)
     if m.fault and v.faults.get(m.id) != m.fault:
         rec.event(ns, f"robot {m.id}: fault: {m.fault}", LogLevel.Error)

@@ -17,7 +17,7 @@ from ..comm.messages import State, Truth
 from ..scenario import Scenario, slot_position
 from ..sim_bridge.geometry import distance_to_obstacles
 from ..viz.messages import (_BODY, _ESTIMATE, _REAL, _STALE, _WHITE, JSON_SCHEMAS, LINK_COLORS, NO_RETURN, ROBOT_TOPICS,  # noqa: F401
-                            TOPICS, WORLD, estimate_frame, estimate_transform, frame, laser_scan, links_scene,
+                            TOPICS, WORLD, diag_doc, estimate_frame, estimate_transform, frame, laser_scan, links_scene,
                             obstacles_scene, pose, pose_in_world, quat, robot_topic, slots_scene, ts)
 
 

@@ -5,6 +5,7 @@
 * :mod:`.qlearning` -- Q-L1..Q-L5 of Table 1; :func:`plan` takes any boolean occupancy ``[x, y]``
   with start and goal cells, and warm-starts from a previous result for cheap replanning;
 * :mod:`.tracking` -- follower tracking (section 4.1) and the triangle formation (section 5.2);
+* :mod:`.runner` -- plans beside the control step (a worker thread; the step adopts a finished plan);
 * :mod:`.plots` -- Fig. 5-8 (imports matplotlib; not imported here).
 
 Imports numpy, matplotlib (plots only) and the standard library: nothing else of the stack.

@@ -71,6 +71,21 @@ class Policy(ABC):
     """Hybrid leaders: (start, stop) fractions of d_com over which the leader's speed falls to zero as its
     farthest robot gets farther (ours, beyond eq. 20; see ``DecisionLayer.leader_speed``); None: eq. (20) only."""
 
+    @property
+    def planner(self):
+        """Where this policy's slow work runs (``stack.planning.runner``): a policy alone plans inline; the step
+        pipeline hands it a runner that keeps planning out of the control step (``StepPipeline.use_planner``)."""
+        r = self.__dict__.get("_planner")
+        if r is None:
+            from ..planning.runner import PlanRunner
+
+            r = self._planner = PlanRunner()
+        return r
+
+    @planner.setter
+    def planner(self, runner) -> None:
+        self._planner = runner
+
     @abstractmethod
     def act(self, obs: Observation) -> tuple[float, float]:
         """Body-frame (v, w) for this step."""

@@ -522,6 +522,65 @@ def gpf_choice(p: tuple[float, float], aim: tuple[float, float], yaw: float, poi
 
 # ============================================================== the policy
 
+@dataclass(frozen=True)
+class _PlanDone:
+    """What a Q-L5 job hands back: the path in grid cells and world points (None: no path, fall back)."""
+
+    result: QLearningResult | None
+    cells: list[tuple[int, int]] | None
+    points: list[tuple[float, float]] | None
+    cold_retry: bool
+    s: float
+    """[s] what the plan cost: the asking step's share and the job's."""
+
+
+@dataclass(frozen=True)
+class _PlanAsk:
+    """One Q-L5 plan as a pure function of a snapshot (the inflated grid, a copy; cells; the warm start, which
+    :func:`plan` only reads; the grid's origin then), so it can run beside the control step."""
+
+    blocked: np.ndarray
+    start: tuple[int, int]
+    goal: tuple[int, int]
+    warm: QLearningResult | None
+    seed: int
+    cfg: QlearnPolicyConfig
+    p: tuple[float, float]
+    goal_xy: tuple[float, float] | None
+    """The exact goal, appended to the path (None: the goal cell was blocked and moved)."""
+    origin: tuple[int, int, float]
+    """The grid's (i0, j0, cell) when asked: the path's world points."""
+    asked_s: float
+
+    def run(self) -> _PlanDone:
+        t0 = time.perf_counter()
+        cfg, s, gc, warm, cold = self.cfg, self.start, self.goal, self.warm, False
+        res = None
+        if s == gc:
+            cells = [s]
+        else:
+            qc = QLearningConfig(variant="Q-L5", seed=self.seed, fill_guard=True,
+                                 max_rounds=cfg.warm_rounds if warm is not None else cfg.max_rounds,
+                                 max_steps=4 * (abs(s[0] - gc[0]) + abs(s[1] - gc[1])) + 50)
+            res = plan(self.blocked, s, gc, qc, warm_start=warm)
+            if warm is not None and not (res.converged or res.greedy_reached or res.reached):
+                # stale Q rows can hold the greedy walk in a loop; with every round cut at max_steps the
+                # step std is 0, eq. (10) gives T = i and eq. (11) epsilon ~ 0: no exploration gets it out
+                cold = True
+                qc.max_rounds = cfg.max_rounds
+                res = plan(self.blocked, s, gc, qc)
+            if not (res.converged or res.greedy_reached or res.reached):
+                return _PlanDone(res, None, None, cold, self.asked_s + time.perf_counter() - t0)
+            cells = [tuple(map(int, c)) for c in res.path]
+        if cfg.smooth:
+            cells = string_pull(cells, self.blocked)
+        i0, j0, cell = self.origin
+        pts = [self.p, *(((i + i0 + 0.5) * cell, (j + j0 + 0.5) * cell) for i, j in cells)]
+        if self.goal_xy is not None:
+            pts.append(self.goal_xy)
+        return _PlanDone(res, cells, pts, cold, self.asked_s + time.perf_counter() - t0)
+
+
 class QlearnPolicy(Policy):
     """``--policy qlearn``: the leader (or a peer) plans with Q-L5 on its lidar grid and pure-pursues the
     path; a follower tracks its slot with eq. (12)-(13)."""
@@ -560,6 +619,8 @@ class QlearnPolicy(Policy):
         self._plan_t = -math.inf
         self._fallback = False
         self._guard_since: float | None = None
+        self._check_path = False  # a plan adopted after it was asked for: check it against the grid of now
+        self._gen = getattr(self, "_gen", 0) + 1  # a plan asked for before a reset is not adopted after it
 
     # ---------------------------------------------------------------- shared perception
     def _scan_world(self, obs: Observation, robots: np.ndarray):
@@ -684,7 +745,7 @@ class QlearnPolicy(Policy):
                 self.counters["arrived"] += 1
             self.last = {"arrived": True, "v": 0.0, "w": 0.0}
             return 0.0, 0.0
-        why = self._replan_reason(p, goal, new_occ)
+        why = None if self.planner.busy("qlearn") else self._replan_reason(p, goal, new_occ)
         if why:
             self.counters["replan_" + why] += 1
             self._replan(p, goal)
@@ -723,6 +784,9 @@ class QlearnPolicy(Policy):
             return "goal_moved"
         if self._fallback or self.path is None:
             return "retry" if since >= cfg.retry_s else None
+        if self._check_path:  # every cell that became occupied since the plan was asked for
+            self._check_path = False
+            new_occ = np.flatnonzero((g.occupied() & ~self._asked_occ).ravel())
         if len(new_occ):
             ny = g.shape[1]
             cells = np.column_stack(np.divmod(new_occ, ny))
@@ -742,6 +806,9 @@ class QlearnPolicy(Policy):
         return None
 
     def _replan(self, p: tuple[float, float], goal: tuple[float, float]) -> None:
+        """Ask for a plan from ``p`` to ``goal`` on the grid as it is now. The cheap part runs here (inflation,
+        start and goal cells, reachability: no route falls back at once); Q-L5 itself runs on ``self.planner``
+        (beside the control step, in an agent) on copies, and :meth:`_adopt` takes its path when it is done."""
         t0 = time.perf_counter()
         cfg, g = self.cfg, self.grid
         self._plan_t = self.t
@@ -751,57 +818,44 @@ class QlearnPolicy(Policy):
         s = g.cell_of(*p)
         gc = self._plan_goal_cell
         if blocked[s]:
-            s2 = nearest_free(blocked, s)
+            s = nearest_free(blocked, s)
             self.counters["start_moved"] += 1
-            s = s2
         goal_moved = False
         if blocked[gc]:
             gc = nearest_free(blocked, gc)
             self.counters["goal_moved"] += 1
             goal_moved = True
         self.counters["plans"] += 1
-        try:
-            if s is None or gc is None or not reachable(blocked, s, gc):
-                self.counters["no_route"] += 1
-                self._set_fallback()
-                return
-            if s == gc:
-                cells = [s]
-                self.result = None
-            else:
-                warm = self.result if (self.result is not None and self.result.occupancy.shape == blocked.shape
-                                       and tuple(self.result.goal) == tuple(gc)) else None
-                self.counters["warm_plans"] += warm is not None
-                qc = QLearningConfig(variant="Q-L5", seed=self.seed + self.counters["plans"], fill_guard=True,
-                                     max_rounds=cfg.warm_rounds if warm is not None else cfg.max_rounds,
-                                     max_steps=4 * (abs(s[0] - gc[0]) + abs(s[1] - gc[1])) + 50)
-                res = plan(blocked, s, gc, qc, warm_start=warm)
-                if warm is not None and not (res.converged or res.greedy_reached or res.reached):
-                    # stale Q rows can hold the greedy walk in a loop; with every round cut at max_steps the
-                    # step std is 0, eq. (10) gives T = i and eq. (11) epsilon ~ 0: no exploration gets it out
-                    self.counters["cold_retry"] += 1
-                    qc.max_rounds = cfg.max_rounds
-                    res = plan(blocked, s, gc, qc)
-                self.result = res
-                if res.converged:
-                    self.counters["converged"] += 1
-                elif res.greedy_reached or res.reached:
-                    self.counters["not_converged_best_path"] += 1
-                else:
-                    self.counters["fallback"] += 1
-                    self._set_fallback()
-                    return
-                cells = [tuple(map(int, c)) for c in res.path]
-            if cfg.smooth:
-                cells = string_pull(cells, blocked)
-            self.path_cells = cells
-            pts = [p, *map(tuple, g.centres(cells))]
-            if not goal_moved:
-                pts.append(goal)
-            self.path = Polyline(pts)
-            self._fallback = False
-        finally:
+        if s is None or gc is None or not reachable(blocked, s, gc):
+            self.counters["no_route"] += 1
+            self._set_fallback()
             self.plan_times.append(time.perf_counter() - t0)
+            return
+        warm = self.result if (self.result is not None and self.result.occupancy.shape == blocked.shape
+                               and tuple(self.result.goal) == tuple(gc)) else None
+        self.counters["warm_plans"] += warm is not None
+        origin = (g.i0, g.j0, g.cell)
+        self._asked_occ = g.occupied().copy()
+        ask = _PlanAsk(blocked, s, gc, warm, self.seed + self.counters["plans"], cfg, p, None if goal_moved else goal,
+                       origin, time.perf_counter() - t0)
+        gen = self._gen
+        self.planner.submit("qlearn", ask.run, lambda done: gen == self._gen and self._adopt(done))
+
+    def _adopt(self, done: "_PlanDone") -> None:
+        """A plan asked for earlier is done (the control thread, at the start of a step)."""
+        self.plan_times.append(done.s)
+        self.counters["cold_retry"] += done.cold_retry
+        self.result = done.result
+        if done.cells is None:
+            self.counters["fallback"] += 1
+            self._set_fallback()
+            return
+        if done.result is not None:
+            self.counters["converged" if done.result.converged else "not_converged_best_path"] += 1
+        self.path_cells = done.cells
+        self.path = Polyline(done.points)
+        self._fallback = False
+        self._check_path = True  # what the grid learnt while the plan computed: checked at the next step
 
     def _set_fallback(self) -> None:
         self._fallback = True

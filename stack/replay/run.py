@@ -12,7 +12,7 @@ from __future__ import annotations
 import copy
 import logging
 import struct
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import yaml
@@ -21,6 +21,7 @@ from ..agents import steplog
 from ..agents.guard import GuardConfig
 from ..agents.step import StepConfig, StepPipeline
 from ..agents.steplog import LogError, Out, Setup
+from ..planning.runner import ScriptedRunner, ThreadRunner
 from ..robotfile import layer, read_robot_file
 from ..scenario import Scenario, ScenarioError, parse_scenario
 from .log import RobotLog
@@ -135,9 +136,12 @@ def pipeline_of(setup: Setup, changes: Changes) -> StepPipeline:
         policy = changes.policy or sc.robot(setup.robot).policy
     try:
         d["guard"] = GuardConfig(**d.get("guard", {}))
-        return StepPipeline(sc, setup.robot, policy=policy, seed=setup.seed, config=StepConfig(**d))
+        pl = StepPipeline(sc, setup.robot, policy=policy, seed=setup.seed, config=StepConfig(**d))
     except (TypeError, ValueError) as e:  # settings this stack's pipeline refuses
         raise LogError(f"setup: the recorded step settings do not build a pipeline here ({e})") from None
+    # plans: adopted at the steps the log says; with changes, the plans asked for differ: the lock-step rule
+    pl.use_planner(ThreadRunner(lockstep_steps=1) if changes.any else ScriptedRunner())
+    return pl
 
 
 def replay(log: RobotLog, changes: Changes | None = None, progress=None) -> Result:
@@ -153,6 +157,8 @@ def replay(log: RobotLog, changes: Changes | None = None, progress=None) -> Resu
             scan = None
             for rec, ns in zip(seg.records, seg.stamps):
                 inp = steplog.inputs_of(rec, scan)
+                if changes.any:
+                    inp = replace(inp, plans=None)  # the lock-step rule, not the recorded steps
                 scan = inp.scan
                 try:
                     out = pl.step(inp)
@@ -165,6 +171,7 @@ def replay(log: RobotLog, changes: Changes | None = None, progress=None) -> Resu
                     res.first, res.differs = row, d
                 if progress is not None:
                     progress()
+            pl.planner.close()
     finally:
         quiet.level = level
     return res

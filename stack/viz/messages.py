@@ -76,7 +76,8 @@ JSON_SCHEMAS = {
     "diag": _obj("stack.Diag", {"id": "integer", "step": "integer", "state": "string", "sent": "integer",
                                 "received": "integer", "delivered": "integer", "dropped_loss": "integer",
                                 "dropped_range": "integer", "malformed": "integer", "fault": "string",
-                                "led_since": "number"}),
+                                "led_since": "number", "plan_age_s": "number", "plan_in_flight_s": "number",
+                                "plan_ms_p99": "number", "plan_ms_max": "number", "plans": "integer"}),
     "step_io": _obj("stack.StepRecord", {  # stack.agents.steplog: every input of a control step and what it returned
         "version": "integer", "id": "integer", "n": "integer", "step": "integer", "t": "number", "t_run": "number",
         "now": "number", "odometry": [{"v": "number", "w": "number", "t": "number", "wz_imu": "number",
@@ -100,6 +101,24 @@ JSON_SCHEMAS = {
                                 "slide_after_s": "number", "slide_free": "number"}}, "lockstep": "boolean", "driver": "string",
                   "stack": "string"}}),
 }
+
+
+def diag_doc(d) -> dict:
+    """The ``diag`` topic's document of an agent's ``Diag`` (the fleet's recording and the agent's live view alike):
+    its counters, and where it plans beside the control step the plan's age, how long the plan in flight has run
+    [s] and the compute times [ms]."""
+    doc = {k: getattr(d, k) for k in ("id", "step", "state", "sent", "received", "delivered", "dropped_loss",
+                                      "dropped_range", "malformed", "fault")}
+    if d.led_since is not None:
+        doc["led_since"] = d.led_since
+    if d.planner:
+        p = d.planner
+        for k, v in (("plans", p.get("adopted")), ("plan_age_s", p.get("age_s")),
+                     ("plan_in_flight_s", p.get("in_flight_s")), ("plan_ms_p99", p.get("ms_p99")),
+                     ("plan_ms_max", p.get("ms_max"))):
+            if v is not None:
+                doc[k] = v
+    return doc
 
 
 def ts(ns: int) -> Timestamp:
