@@ -227,9 +227,10 @@ class StuckDetector:
         """Ask for a planned detour (inline it is back at once: ``self._first``). Where the straight way to the
         target is open in the memory the robot is stuck all the same (its policy's own steering refuses the way:
         Deng's obstacle term repels every direction through a gap), so the tracker drives down the way for
-        ``open_horizon`` metres, ``straight_time`` at most. False: no plan asked (disabled, no target)."""
+        ``open_horizon`` metres, ``straight_time`` at most. False: no plan asked (disabled, no target, or the last
+        detour's re-plan still computing)."""
         dc = self.cfg.detour
-        if not dc.enabled or target is None:
+        if not dc.enabled or target is None or self.runner.busy("detour"):  # busy: the last detour's re-plan
             return False
         self._first = None
         self.runner.submit("detour", self.planner.ask(t, me, target).run,
@@ -244,6 +245,7 @@ class StuckDetector:
         """A try's plan is back: follow it, or (no way round) the next blind try."""
         (found, me, t_asked), self._first = self._first, None
         o, dc = self.open, self.cfg.detour
+        self._replanned = None  # a re-plan of an earlier detour that came back after it ended
         if not found:
             o["kind"] = "escape" if o["blind"] == 0 else "detour"
             return self._blind(t, x, y, yaw, scan, fov, range_max, radius)
