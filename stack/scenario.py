@@ -316,6 +316,9 @@ class SuccessConfig:
     goal_tolerance: float = 0.5
     max_time: float | None = None
     no_collisions: bool = True
+    settle_s: float = 10.0
+    """[s] (beyond the contract) after the leader arrives, a run that stops early goes on at most this long for
+    the followers to settle in their slots; 0 ends it when the leader arrives."""
 
 
 @dataclass(frozen=True)
@@ -995,11 +998,12 @@ def _arrival_peers(rd: _Reader, robots: list[RobotConfig]) -> None:
 
 
 def _success(rd: _Reader, value: Any) -> SuccessConfig:
-    s = rd.mapping(value, "success", {"goal_tolerance", "max_time", "no_collisions"})
+    s = rd.mapping(value, "success", {"goal_tolerance", "max_time", "no_collisions", "settle_s"})
     return SuccessConfig(
         goal_tolerance=rd.number(s.get("goal_tolerance", 0.5), "success.goal_tolerance", 0.0, lo_open=True),
         max_time=rd.number(s["max_time"], "success.max_time", 0.0, lo_open=True) if "max_time" in s else None,
         no_collisions=rd.boolean(s.get("no_collisions", True), "success.no_collisions"),
+        settle_s=rd.number(s.get("settle_s", 10.0), "success.settle_s", 0.0, 600.0),
     )
 
 

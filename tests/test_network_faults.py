@@ -141,9 +141,10 @@ def wait_first_clock(connect: str, fleet_name: str, timeout: float = 60.0) -> No
         assert got.wait(timeout), "the world never stepped"
 
 
-def short_diamond(duration: float = 30.0) -> dict:
+def short_diamond(duration: float = 30.0, settle_s: float = 1.0) -> dict:
+    """The diamond to 6 m; the run ends ``settle_s`` after the leader arrives (the faults are what is tested)."""
     d = scenario_dict(duration=duration)
-    d["success"] = dict(d["success"], max_time=duration)
+    d["success"] = dict(d["success"], max_time=duration, settle_s=settle_s)
     d["formation"] = dict(d["formation"], goal=[6.0, 0.0])
     d["robot"] = dict(d["robot"], cmd_timeout=0.5)
     return d
@@ -255,7 +256,8 @@ def test_bad_router_lists_and_waits_are_one_line_errors(tmp_path: Path):
              (["stack-fleet", "run", str(sc), "--rejoin-wait", "-1"], "--rejoin-wait: must be >= 0"),
              (["stack-agent", "--id", "1", "--scenario", str(sc), "--connect", "tcp/127.0.0.1:7447,tcp/10.1.2.3:7447"],
               "not a loopback address"),
-             (["stack-world", "--scenario", str(sc), "--rejoin-wait", "-2"], "--rejoin-wait: must be >= 0")]
+             (["stack-world", "--scenario", str(sc), "--rejoin-wait", "-2"], "--rejoin-wait: must be >= 0"),
+             (["stack-world", "--scenario", str(sc), "--linger", "nan"], "--linger: must be >= 0, got nan")]
     for argv, words in cases:
         p = run_cli(argv, timeout=60)
         lines = [x for x in p.stderr.strip().splitlines() if not x.startswith("pybullet build time")]  # its banner
@@ -342,7 +344,7 @@ def test_a_partition_leaves_one_leader_driving(tmp_path: Path):
     still has its router but hears nobody. It sees the leader gone and takes the leader's role on its side, but
     one of four is no quorum: it holds. The others go on (the leader keeps driving) with robot 2 dropped; the
     world has it out of contact, not gone; it rejoins and the mission succeeds."""
-    d = short_diamond()
+    d = short_diamond(settle_s=3.0)  # robot 2's diag (once a second) reaches the fleet after the link is mended
     sc = write_scenario(tmp_path / "diamond.yaml", d)
     ep1, ep2 = free_tcp_endpoint(), free_tcp_endpoint()
     r1 = Router(ep1, tmp_path / "r1.log")
@@ -388,7 +390,7 @@ def test_the_fleets_own_router_flapping_is_started_again_each_time(tmp_path: Pat
     about a second after each time the orchestrator has started it again on its endpoint (four times): every
     session rejoins each time, no leader but the scenario's, the run ends by completing the task."""
     ep = free_tcp_endpoint()
-    d = short_diamond()
+    d = short_diamond(settle_s=10.0)  # the run must outlast four restarts, however slowly each is noticed
     sc = write_scenario(tmp_path / "diamond.yaml", d)
     out = tmp_path / "own"
     argv = [sys.executable, "-m", "stack.fleet", "run", str(sc), "--realtime", "--listen", ep, "--out", str(out),

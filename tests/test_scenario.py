@@ -58,6 +58,7 @@ BAD = [
     (lambda d: d.__setitem__("robots", []), "robots: expected a non-empty list"),
     (lambda d: d.pop("formation"), "formation: missing"),
     (lambda d: d["success"].__setitem__("no_collisions", "yes"), "success.no_collisions: expected true or false"),
+    (lambda d: d["success"].__setitem__("settle_s", -1), "success.settle_s: must be >= 0, got -1"),
     (lambda d: d["robot"].__setitem__("drl", {"shields": True}), "robot.drl.shields: unknown field"),
     (lambda d: d["robot"].__setitem__("drl", {"shield": "yes"}), "robot.drl.shield: expected true or false, got text ('yes')"),
     (lambda d: d["robots"][1].__setitem__("drl", {"weights": "nope.pt"}), "robots[1].drl.weights: no such file: nope.pt"),

@@ -235,6 +235,8 @@ class Fleet:
                 *self._remote, *self._zconf]
         if cfg.realtime:
             argv.append("--realtime")
+            if cfg.external_agents:  # not ours to stop: a real-time agent stays up when the run ends (its
+                argv += ["--linger", "2"]  # diag, once a second, gets two periods to bring its last word)
         if cfg.gui:
             argv.append("--gui")
         for kind, rid, at in cfg.faults:

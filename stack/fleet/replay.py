@@ -167,6 +167,11 @@ def _scene(ax, rec: Recording):
     return art
 
 
+def _artists(art: dict) -> list:
+    """Every artist a frame moves (the values of ``art``, its per-robot dicts flattened)."""
+    return [x for v in art.values() for x in (v.values() if isinstance(v, dict) else (v,))]
+
+
 def _scan_points(rec: Recording, ns: int, poses: dict) -> list[tuple[float, float]]:
     pts = []
     for rid, series in rec.scans.items():
@@ -235,11 +240,17 @@ def render_replay(run_dir: str | Path, out: str | Path = "replay.gif", *, max_fr
     art = _scene(ax, rec)
     ax.legend(loc="lower right", fontsize=7)
     fig.tight_layout()
-    times = frame_times(rec, max_frames)
+    moving = sorted(_artists(art), key=lambda a: a.get_zorder())
+    for a in moving:
+        a.set_animated(True)  # left out of the background: the axes, ticks, legend and obstacles are drawn once
+    fig.canvas.draw()
+    background = fig.canvas.copy_from_bbox(fig.bbox)
     frames = []
-    for ns in times:
+    for ns in frame_times(rec, max_frames):
         _draw(art, rec, ns, rec.truth[0][0])
-        fig.canvas.draw()
+        fig.canvas.restore_region(background)
+        for a in moving:  # in z-order, over the background (every one of them above the obstacles)
+            ax.draw_artist(a)
         frames.append(Image.frombuffer("RGBA", fig.canvas.get_width_height(), fig.canvas.buffer_rgba()).convert("RGB")
                       .quantize(colors=64, method=Image.Quantize.FASTOCTREE))
     plt.close(fig)

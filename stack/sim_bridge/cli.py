@@ -44,6 +44,8 @@ def cli(argv: list[str] | None = None) -> int:
     ap.add_argument("--rejoin-wait", type=float, default=10.0, metavar="S",
                     help="real time: how long a robot out of contact may take to come back before it is gone")
     ap.add_argument("--lockstep-timeout", type=float, default=2.0)
+    ap.add_argument("--linger", type=float, default=10.0, metavar="S",
+                    help="after the run, how long to wait for the agents to leave (default 10 s)")
     ap.add_argument("--no-stop-early", action="store_true", help="run the whole duration even when the task is done")
     ap.add_argument("--no-agents", action="store_true",
                     help="host the robots and their devices without agents of this fleet: wait for none (with "
@@ -69,8 +71,9 @@ def cli(argv: list[str] | None = None) -> int:
                 raise ScenarioError(f"--mocap: no robot {m.robot} in the scenario")
         if (a.mocap or a.no_agents) and not a.realtime:
             raise ScenarioError("--mocap and --no-agents run on the wall clock: add --realtime")
-        if a.rejoin_wait < 0:
-            raise ScenarioError(f"--rejoin-wait: must be >= 0, got {a.rejoin_wait:g}")
+        for flag, v in (("--rejoin-wait", a.rejoin_wait), ("--linger", a.linger)):
+            if not v >= 0:
+                raise ScenarioError(f"{flag}: must be >= 0, got {v:g}")
         real = [r.id for r in sc.robots if r.embodiment == "real"]
         if real and not a.realtime:
             raise ScenarioError(f"robots {real} are real (embodiment: real): a fleet with real robots runs in real "
@@ -79,7 +82,7 @@ def cli(argv: list[str] | None = None) -> int:
         print(f"stack-world: {e}", file=sys.stderr)
         return 2
     cfg = WorldConfig(scenario=sc, connect=a.connect, fleet=a.fleet, out=a.out, realtime=a.realtime, gui=a.gui,
-                      wait_agents_s=a.wait_agents, rejoin_wait_s=a.rejoin_wait, lockstep_timeout_s=a.lockstep_timeout, duration=a.duration,
+                      wait_agents_s=a.wait_agents, rejoin_wait_s=a.rejoin_wait, lockstep_timeout_s=a.lockstep_timeout, linger_s=a.linger, duration=a.duration,
                       stop_early=not a.no_stop_early, no_agents=a.no_agents, mocap=a.mocap, zenoh_config=a.zenoh_config, allow_remote=a.allow_remote,
                       device_faults=a.device_fault, faults=[(kind, rid, t) for kind in FAULT_KINDS for rid, t in getattr(a, kind)])
     try:

@@ -45,7 +45,6 @@ from .world import World
 
 log = logging.getLogger("stack.world")
 
-SETTLE_S = 10.0  # after the leader arrives, run on at most this long for the followers to settle
 SETTLED_M = 0.3  # followers within this of their slots: the formation has settled
 CAST_PART = 8  # robots whose rays are cast together, their sensors sent before the next part is cast
 STATE_WAIT_S = 1.0  # lock-step: how long (wall) the next clock waits for a state sent before its robot's command
@@ -95,6 +94,10 @@ class WorldConfig:
     """``mocap_sim.MocapSpec``s: simulated motion-capture rigid bodies of some robots (real time)."""
     fault_timeout_s: float = 30.0
     """How long to wait (wall) for a fault to be carried out (ack; for a restart, the agent's token)."""
+    linger_s: float = 10.0
+    """After the run, how long (wall) to wait for the simulated robots' agents to leave (their final zero commands
+    arrive) before ``world.json`` is written. A fleet whose agents run elsewhere in real time passes 2 s: they
+    stay up when a run ends, as a real robot's agent does."""
     stop: threading.Event = field(default_factory=threading.Event)
 
 
@@ -323,7 +326,7 @@ class WorldServer:
             result = self._loop(pubs, clock_pub, truth_pub, fault_pub)
             status_pub.put(encode(WorldStatus(state="done", t=self.t, why=result["end_reason"])))
             # let the agents stop (their final zero commands arrive) before we report what we saw last
-            self.linger(10.0)
+            self.linger(self.cfg.linger_s)
             return result
         finally:
             if token is not None:
@@ -598,11 +601,12 @@ class WorldServer:
         return result
 
     def linger(self, timeout_s: float) -> None:
-        """After the run: wait until every agent has left (or a signal, or the timeout). Lock-step devices answer
-        their drivers' closing (HOLD, disarm: the rover ACKs them) at the run's last time meanwhile."""
+        """After the run: wait until every simulated robot's agent has left (or a signal, or the timeout); a real
+        robot's agent stays on its robot, holding, when the world is done. Lock-step devices answer their drivers'
+        closing (HOLD, disarm: the rover ACKs them) at the run's last time meanwhile."""
         deadline = time.monotonic() + timeout_s
         with self._cv:
-            while self.alive and not self.cfg.stop.is_set() and time.monotonic() < deadline:
+            while self.alive - self.real_ids and not self.cfg.stop.is_set() and time.monotonic() < deadline:
                 self._cv.wait(0.02 if self.devices and not self.cfg.realtime else 0.1)
                 for dev in self.devices.values() if not self.cfg.realtime else ():
                     dev.serve(self.t)
@@ -638,4 +642,4 @@ class WorldServer:
         errs = [np.hypot(*(np.array(slot_position((w.x[li], w.y[li]), slot)) - [w.x[w.index[r]], w.y[w.index[r]]]))
                 for r, slot in slots.items()]
         settled = all(e < SETTLED_M for e in errs) and abs(w.v[li]) < 0.05
-        return settled or self.t - arrived_at >= SETTLE_S, arrived_at
+        return settled or self.t - arrived_at >= sc.success.settle_s, arrived_at
