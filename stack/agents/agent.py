@@ -665,7 +665,7 @@ class Agent:
                  device_odom_late=self.barrier.device_late, device_odom_strays=self.barrier.strays,
                  odom_stale=pc.odom_stale, lidar_stale=pc.lidar_stale, scans_from_driver=self.scans_from_driver,
                  shield_masked=getattr(pl.policy, "masked", None), guard_caps=pl.guard.capped,
-                 guard_slides=pl.guard.slides, links=pl.radio.links(), stuck=pl.decision.livelock(),
+                 guard_slides=pl.guard.slides, guard_brakes=pl.guard.brakes, links=pl.radio.links(), stuck=pl.decision.livelock(),
                  planner=pl.planner.stats() if pl.planner.tickets else None,
                  led=[list(iv) for iv in pl.drove_led], held_steps=pl.held_steps, tokens_kept=self.judge.discarded,
                  link_outages=[[o.start + off, None if o.end is None else o.end + off] for o in self.link.outages],

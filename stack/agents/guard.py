@@ -41,6 +41,8 @@ WAY_OUT_STEP = math.radians(5.0)
 """[rad] the headings :meth:`CollisionGuard.way_out` tries."""
 ARC_ROUNDS = 12
 """Bisection rounds for a capped speed that is safe on its own (tighter) arc: to v / 4096."""
+ROLLING = 0.02
+"""[m/s] a base whose odometry says it moves forward faster than this is still rolling (:meth:`CollisionGuard.must_brake`)."""
 
 
 @dataclass
@@ -80,6 +82,8 @@ class CollisionGuard:
         """Steps at which the guard lowered the policy's forward speed."""
         self.slides = 0
         """Steps at which the robot took the guard's way out (held still ``slide_after_s``, see the step)."""
+        self.brakes = 0
+        """Steps at which the whole command was zero because the base still rolled where it could not stop in time."""
 
     def free_distance(self, ranges: np.ndarray, curvature: float = 0.0) -> float:
         """How far the grown disc can drive ahead, straight or on an arc of ``curvature`` (w / v, left
@@ -133,6 +137,23 @@ class CollisionGuard:
             return 0.0
         a, lag = self.cfg.decel, self.cfg.lag_s
         return a * (math.sqrt(lag * lag + 2.0 * d / a) - lag)
+
+    def must_brake(self, rolling: float, ranges: np.ndarray, w: float = 0.0) -> bool:
+        """Whether the base, rolling forward at ``rolling`` (its odometry, whatever it was commanded), can no longer
+        stop in time on its way (straight, or the arc ``w`` bends it onto): then the whole command must be zero, a
+        straight brake (counted), until it has stopped. Capping ``v`` alone is not enough there: a drive whose wheels
+        ramp at a bounded rate, commanded to turn in place one way and then the other, does not stop; each wheel
+        swings between opposite targets and their mean, the forward speed, stays (an ``aina`` leader chattering
+        between (0.3, +1) and (0, -1) beside a box crept into it at 0.1 m/s for 2 s, its commanded ``v`` zero)."""
+        if not self.cfg.enabled or rolling <= ROLLING:
+            return False
+        d = self.free_distance(ranges)
+        if w != 0.0:
+            d = min(d, self.free_distance(ranges, w / rolling))
+        if rolling <= self.stoppable_speed(d):
+            return False
+        self.brakes += 1
+        return True
 
     def limit(self, v: float, ranges: np.ndarray, w: float = 0.0) -> float:
         """``v`` capped to what the robot can stop from before what ``ranges`` shows on its way, straight or

@@ -192,7 +192,7 @@ def estimator_rmse(log: TruthLog, j: int, estimates: list[tuple[int, float, floa
 
 DIAG_FIELDS = ("fixes", "estimator_inputs_rejected", "sensor_stale_stops", "states_rejected", "driver_fault",
                "neighbour_waits_timed_out", "device_odom_late", "scans_from_driver", "shield_masked", "guard_caps",
-               "guard_slides", "led_since_s", "stuck", "device_odom_strays", "odom_stale_stops", "lidar_stale_stops")
+               "guard_slides", "guard_brakes", "led_since_s", "stuck", "device_odom_strays", "odom_stale_stops", "lidar_stale_stops")
 
 
 def diag_fields(d) -> dict:
@@ -204,7 +204,7 @@ def diag_fields(d) -> dict:
             "states_rejected": d.rejected_states, "driver_fault": d.fault or None,
             "neighbour_waits_timed_out": d.neighbour_waits_timed_out, "device_odom_late": d.device_odom_late,
             "scans_from_driver": d.scans_from_driver, "shield_masked": d.shield_masked, "guard_caps": d.guard_caps,
-            "guard_slides": d.guard_slides, "led_since_s": d.led_since,
+            "guard_slides": d.guard_slides, "guard_brakes": d.guard_brakes, "led_since_s": d.led_since,
             "stuck": d.stuck, "device_odom_strays": d.device_odom_strays, "odom_stale_stops": d.odom_stale,
             "lidar_stale_stops": d.lidar_stale}
 
