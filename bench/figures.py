@@ -89,6 +89,10 @@ FIGURES: tuple[Figure, ...] = (
              "drl,drl-alone", "--drl-weights", "stack/policies/drl/weights/drl-chain.pt", "--jobs", "2", "--out",
              "runs/figures/heldout-chain"),),
            {"runs/figures/heldout-chain/heldout_success.png": "figures/heldout_success_chain.png"}, 80),
+    Figure("held-out success at high density with the brake and plans beside the step (docs/heldout.md)",
+           ((PY, "bench/heldout.py", "--courses", "34", "--arrival", "0", "--densities", "high", "--first-seed",
+             "1000224", "--policies", "drl,drl-alone,aina,qlearn", "--jobs", "2", "--out", "runs/figures/heldout-high"),),
+           {"runs/figures/heldout-high/heldout_success.png": "figures/heldout_success_high.png"}, 32),
     Figure("the DRL training chain drawn end to end, and its stage-3 weights held out (docs/policy-drl.md, "
            "docs/heldout.md)",
            (("bash", "bench/drl_chain.sh", "runs/figures/drl-chain"),
