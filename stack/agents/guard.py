@@ -83,7 +83,7 @@ class CollisionGuard:
         self.slides = 0
         """Steps at which the robot took the guard's way out (held still ``slide_after_s``, see the step)."""
         self.brakes = 0
-        """Steps at which the whole command was zero because the base still rolled where it could not stop in time."""
+        """Steps at which the whole command was zero: the base still rolled with something inside the margin ahead."""
 
     def free_distance(self, ranges: np.ndarray, curvature: float = 0.0) -> float:
         """How far the grown disc can drive ahead, straight or on an arc of ``curvature`` (w / v, left
@@ -139,18 +139,20 @@ class CollisionGuard:
         return a * (math.sqrt(lag * lag + 2.0 * d / a) - lag)
 
     def must_brake(self, rolling: float, ranges: np.ndarray, w: float = 0.0) -> bool:
-        """Whether the base, rolling forward at ``rolling`` (its odometry, whatever it was commanded), can no longer
-        stop in time on its way (straight, or the arc ``w`` bends it onto): then the whole command must be zero, a
-        straight brake (counted), until it has stopped. Capping ``v`` alone is not enough there: a drive whose wheels
-        ramp at a bounded rate, commanded to turn in place one way and then the other, does not stop; each wheel
-        swings between opposite targets and their mean, the forward speed, stays (an ``aina`` leader chattering
-        between (0.3, +1) and (0, -1) beside a box crept into it at 0.1 m/s for 2 s, its commanded ``v`` zero)."""
+        """Whether the base, rolling forward at ``rolling`` (its odometry, whatever it was commanded), already has
+        something inside the margin on its way (straight, or the arc ``w`` bends it onto): then the whole command
+        must be zero, a straight brake (counted), until it has stopped. Capping ``v`` alone is not enough there: a
+        drive whose wheels ramp at a bounded rate, commanded to turn in place one way and then the other, does not
+        stop; each wheel swings between opposite targets and their mean, the forward speed, stays (an ``aina``
+        leader chattering between (0.3, +1) and (0, -1) beside a box crept into it at 0.1 m/s for 2 s, its commanded
+        ``v`` zero). Outside the margin the caps of :meth:`limit` keep it and the turn stays free (braking there too,
+        wherever the odometry's speed exceeded the stoppable one, slowed a formation's followers near each other)."""
         if not self.cfg.enabled or rolling <= ROLLING:
             return False
         d = self.free_distance(ranges)
         if w != 0.0:
             d = min(d, self.free_distance(ranges, w / rolling))
-        if rolling <= self.stoppable_speed(d):
+        if d > 0.0:
             return False
         self.brakes += 1
         return True

@@ -383,7 +383,7 @@ class StepPipeline:
 
     def _guarded(self, v: float, w: float, inp: StepInputs) -> tuple[float, float]:
         """The collision guard on a command (a scan too old judges nothing: ``pid`` drives without one). A base that
-        still rolls where it cannot stop in time gets zero, both rates (``CollisionGuard.must_brake``). Held still
+        still rolls with something inside the margin ahead gets zero, both rates (``CollisionGuard.must_brake``). Held still
         ``slide_after_s`` while the policy asks to go forward, the robot takes the guard's way out instead: it turns
         in place to the nearest heading whose corridor is free, then drives along it (the guard judging that too)."""
         w = max(-self.robot.w_max, min(self.robot.w_max, w))  # the turn the base will make: the arc to judge
@@ -391,7 +391,7 @@ class StepPipeline:
             return v, w
         ranges, g = self.scans[-1], self.cfg.guard
         if inp.odometry and self.guard.must_brake(inp.odometry[-1].v, ranges, w):
-            return 0.0, 0.0  # still rolling where it cannot stop in time: brake straight, turn once stopped
+            return 0.0, 0.0  # still rolling into the margin: brake straight, turn once stopped
         allowed = self.guard.limit(v, ranges, w)
         if not (v > HELD_BELOW and allowed < HELD_BELOW):
             self._held_since = None

@@ -228,7 +228,7 @@ class Diag(_Msg):
     shield_masked: int | None = None  # --policy drl: steps at which the action shield overruled the network
     guard_caps: int = 0  # steps at which the collision guard lowered the policy's forward speed
     guard_slides: int = 0  # steps at which a robot the guard held still took its way out (GuardConfig.slide_after_s)
-    guard_brakes: int = 0  # steps commanded zero because the base still rolled where it could not stop in time
+    guard_brakes: int = 0  # steps commanded zero: the base still rolled with something inside the margin ahead
     links: dict[int, dict[str, int]] | None = None  # sender id -> {delivered, dropped_range, dropped_loss}, cumulative
     # (RadioModel.links()): the comm graph a recorder draws; None from senders that do not count per link
     planner: dict | None = None  # plans beside the step (PlanRunner.stats): asked, adopted, compute ms, ages [s]
